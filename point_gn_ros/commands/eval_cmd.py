@@ -1,0 +1,105 @@
+"""`point_gn eval` and `point_gn fewshot`: offline accuracy figures."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from point_gn_ros.commands.common import add_dataset_args, add_encoder_args
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    e = sub.add_parser('eval', help='classify a dataset split against a bank and report accuracy')
+    e.add_argument('bank', metavar='BANK', help='bank file (.npz)')
+    add_dataset_args(e, 'test')
+    add_encoder_args(e)
+    e.add_argument('--json', action='store_true', help='print the report as JSON')
+    e.add_argument('--confusion', default=None, metavar='PNG',
+                   help='write the confusion matrix here')
+    e.add_argument('--gamma', type=float, default=None,
+                   help="override the bank's gamma (for comparisons only)")
+    e.add_argument('--unknown-threshold', type=float, default=None,
+                   help='open-set threshold on the top score (<0: the bank calibration)')
+    e.set_defaults(func=_eval)
+
+    f = sub.add_parser('fewshot', help='N-way K-shot episodes (default: the paper settings)')
+    add_dataset_args(f, 'test')
+    add_encoder_args(f)
+    f.add_argument('--ways', type=int, default=None, help='classes per episode')
+    f.add_argument('--shots', type=int, default=None, help='support objects per class')
+    f.add_argument('--queries', type=int, default=20, help='query objects per class')
+    f.add_argument('--episodes', type=int, default=10, help='seeded episodes per setting')
+    f.add_argument('--seed', type=int, default=0, help='episode seed')
+    f.add_argument('--json', action='store_true', help='print results as JSON')
+    f.set_defaults(func=_fewshot)
+
+
+def _eval(args: argparse.Namespace) -> int:
+    import torch
+
+    from point_gn_ros.bank import FeatureBank
+    from point_gn_ros.bank_builder import encode_dataset
+    from point_gn_ros.classifier import Classifier
+    from point_gn_ros.commands.common import open_dataset_from_args
+    from point_gn_ros.errors import DatasetError
+    from point_gn_ros.metrics import accuracy_report, format_report, plot_confusion
+    from point_gn_ros.recognizer import make_encoder
+
+    bank = FeatureBank.load(args.bank)
+    ds = open_dataset_from_args(args)
+    if list(ds.class_names) != list(bank.class_names):
+        raise DatasetError(f'{ds.path}: class names differ from the bank\'s '
+                           f'({len(ds.class_names)} vs {len(bank.class_names)} classes)')
+    enc = make_encoder(bank.config, args.device)
+    feats = encode_dataset(ds, enc, args.batch_size, progress=not args.json,
+                           cache_dir=Path(args.cache) if args.cache else None)
+    clf = Classifier(bank, args.device, args.unknown_threshold, gamma=args.gamma)
+    res = clf.classify(torch.as_tensor(feats), top_k=1)
+    report = accuracy_report(ds.labels, res.labels, bank.class_names)
+    report.update(bank=str(bank.path), dataset=str(ds.path), split=ds.split,
+                  gamma=clf.gamma)
+    if args.confusion:
+        plot_confusion(report['confusion'], bank.class_names, args.confusion,
+                       f'{Path(ds.path).name} [{ds.split}]: {100 * report["accuracy"]:.2f} %')
+    if args.json:
+        print(json.dumps({k: v for k, v in report.items() if k != 'confusion'}, indent=2))
+    else:
+        print(format_report(report, f'{Path(ds.path).name} [{ds.split}] vs {bank.path.name}'))
+    return 0
+
+
+def _fewshot(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+
+    from point_gn_ros.commands.common import open_dataset_from_args
+    from point_gn_ros.config import EncoderConfig
+    from point_gn_ros.fewshot import PAPER_SETTINGS, run_fewshot
+    from point_gn_ros.recognizer import encode_clouds, make_encoder
+
+    ds = open_dataset_from_args(args)
+    enc = make_encoder(EncoderConfig(), args.device)
+    labels = np.asarray(ds.labels)
+    settings = PAPER_SETTINGS if args.ways is None and args.shots is None else (
+        (args.ways or 5, args.shots or 10),)
+    cached: dict[int, torch.Tensor] = {}
+
+    def encode(idx: np.ndarray) -> torch.Tensor:
+        todo = [int(i) for i in idx if int(i) not in cached]
+        if todo:
+            feats = encode_clouds([ds[i][0] for i in todo], enc, batch_size=args.batch_size,
+                                  progress=None if args.json else 'encoding')
+            cached.update(zip(todo, feats))
+        return torch.stack([cached[int(i)] for i in idx])
+
+    results = [run_fewshot(labels, encode, w, s, args.queries, args.episodes, args.seed)
+               for w, s in settings]
+    if args.json:
+        print(json.dumps(results, indent=2))
+    else:
+        print('| setting | accuracy (mean ± std over episodes) |\n|---|---|')
+        for r in results:
+            print(f'| {r["ways"]}-way {r["shots"]}-shot | {100 * r["mean"]:.1f} ± '
+                  f'{100 * r["std"]:.1f} % |')
+    return 0

@@ -1,0 +1,61 @@
+"""Encoder configuration: every knob that changes the encoder's output."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+import math
+from typing import Any, Mapping
+
+# Bump whenever the encoder's output changes for a given configuration, so that
+# banks built by an older encoder are refused instead of silently mis-matched.
+ENCODER_VERSION = 1
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """Point-GN encoder hyper-parameters (defaults: the paper's ModelNet40 set)."""
+
+    num_points: int = 1024
+    init_dim: int = 27
+    stages: int = 4
+    k: int = 120
+    sigma: float = 0.4
+
+    def __post_init__(self) -> None:
+        if self.num_points < 2 ** self.stages:
+            raise ValueError(
+                f'num_points={self.num_points} is too small for {self.stages} stages')
+        if self.init_dim < 3 or self.init_dim % 3:
+            raise ValueError(f'init_dim must be a positive multiple of 3, got {self.init_dim}')
+        if self.stages < 1:
+            raise ValueError(f'stages must be >= 1, got {self.stages}')
+        if self.k < 1:
+            raise ValueError(f'k must be >= 1, got {self.k}')
+        if not (math.isfinite(self.sigma) and self.sigma > 0):
+            raise ValueError(f'sigma must be a positive number, got {self.sigma}')
+
+    @property
+    def stage_dims(self) -> tuple[int, ...]:
+        """Feature width after each stage (doubles every stage)."""
+        return tuple(self.init_dim * 2 ** (i + 1) for i in range(self.stages))
+
+    @property
+    def stage_points(self) -> tuple[int, ...]:
+        """Number of FPS centres at each stage (halves every stage)."""
+        return tuple(self.num_points // 2 ** (i + 1) for i in range(self.stages))
+
+    @property
+    def feature_dim(self) -> int:
+        """Length of the global feature: max and mean of every stage."""
+        return 2 * sum(self.stage_dims)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> 'EncoderConfig':
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f'unknown encoder configuration keys: {sorted(unknown)}')
+        return cls(**{k: data[k] for k in known if k in data})

@@ -1,0 +1,89 @@
+"""Resampling and normalisation."""
+
+import numpy as np
+import pytest
+import torch
+
+from point_gn_ros.encoder_naive import fps as oracle_fps
+from point_gn_ros.sampling import FPS_MAX_INPUT, fps_indices, normalize, prepare, resample
+
+
+def _cloud(n: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).normal(size=(n, 3)).astype(np.float32)
+
+
+@pytest.mark.parametrize('n_in', [1, 5, 700, 1024, 3000])
+@pytest.mark.parametrize('method', ['fps', 'random'])
+def test_any_count_becomes_1024(n_in: int, method: str) -> None:
+    out = resample(_cloud(n_in), 1024, method)
+    assert out.shape == (1024, 3) and out.dtype == np.float32
+
+
+def test_upsampling_repeats_points_never_zero_pads() -> None:
+    cloud = _cloud(10) + 5.0  # far from the origin: a zero pad would stand out
+    out = resample(cloud, 1024)
+    assert not np.any(np.all(out == 0, axis=1))
+    assert {tuple(p) for p in out} == {tuple(p) for p in cloud}
+
+
+def test_fps_spreads_points_better_than_random() -> None:
+    cloud = _cloud(5000)
+    def coverage(sub: np.ndarray) -> float:  # farthest any input point is from the subset
+        d = ((cloud[:, None, :] - sub[None, :256, :]) ** 2).sum(-1)
+        return float(d.min(1).max())
+    assert coverage(resample(cloud, 256, 'fps')) < 0.7 * coverage(resample(cloud, 256, 'random'))
+
+
+def test_fps_matches_the_oracle_encoder_fps() -> None:
+    cloud = _cloud(2048, 3)
+    ours = fps_indices(cloud, 512)
+    oracle = oracle_fps(torch.from_numpy(cloud), 512).numpy()
+    np.testing.assert_array_equal(ours, oracle)
+
+
+def test_fps_start_is_geometric_so_order_does_not_matter() -> None:
+    cloud = _cloud(3000, 4)
+    perm = np.random.default_rng(1).permutation(len(cloud))
+    a = resample(cloud, 1024, 'fps')
+    b = resample(cloud[perm], 1024, 'fps')
+    assert {tuple(p) for p in a} == {tuple(p) for p in b}
+
+
+def test_random_resampling_is_seeded() -> None:
+    cloud = _cloud(4000)
+    np.testing.assert_array_equal(resample(cloud, 1024, 'random', 7),
+                                  resample(cloud, 1024, 'random', 7))
+    assert not np.array_equal(resample(cloud, 1024, 'random', 7),
+                              resample(cloud, 1024, 'random', 8))
+
+
+def test_huge_cloud_is_subsampled_before_fps() -> None:
+    out = resample(_cloud(FPS_MAX_INPUT * 4), 1024, 'fps')
+    assert out.shape == (1024, 3)
+
+
+def test_unknown_method_is_rejected() -> None:
+    with pytest.raises(ValueError, match='fps'):
+        resample(_cloud(3000), 1024, 'grid')  # type: ignore[arg-type]
+
+
+def test_normalize_puts_sensor_frame_cloud_in_unit_sphere() -> None:
+    cloud = _cloud(1024) * 0.3 + np.array([4.0, -2.0, 0.7], dtype=np.float32)
+    out = normalize(cloud)
+    assert np.abs(out.mean(0)).max() < 1e-5
+    assert abs(np.linalg.norm(out, axis=1).max() - 1.0) < 1e-5
+
+
+def test_normalize_is_scale_and_translation_invariant() -> None:
+    cloud = _cloud(1024)
+    np.testing.assert_allclose(normalize(cloud), normalize(cloud * 2.5 + 3.0), atol=1e-5)
+
+
+@pytest.mark.parametrize('cloud', [
+    np.zeros((1, 3), np.float32),
+    np.full((50, 3), 7.0, np.float32),
+    np.stack([np.linspace(0, 1, 100)] * 3, 1).astype(np.float32),
+])
+def test_degenerate_clouds_prepare_to_finite_points(cloud: np.ndarray) -> None:
+    out = prepare(cloud)
+    assert out.shape == (1024, 3) and np.isfinite(out).all()
