@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections import Counter
-from datetime import datetime, timezone
+from datetime import datetime, UTC
 import hashlib
 from pathlib import Path
 
@@ -61,7 +61,7 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
             'dataset': str(dataset.path), 'format': dataset.format, 'split': dataset.split,
             'count': int(len(labels)),
             'per_class': {dataset.class_names[c]: int(n) for c, n in sorted(counts.items())},
-            'created': datetime.now(timezone.utc).isoformat(timespec='seconds'),
+            'created': datetime.now(UTC).isoformat(timespec='seconds'),
         },
         'selection': {'standardize': sel.standardize, 'dims': sel.dims, 'gamma': sel.gamma,
                       'cv_folds': folds, 'cv_accuracy': sel.cv_accuracy,

@@ -39,21 +39,31 @@ class Classification:
         return int(self.labels.shape[0])
 
 
+def votes_from_similarity(sims: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,
+                          gamma: float) -> torch.Tensor:
+    """Kernel-vote shares from cosine similarities.
+
+    sims: (B, N) cosine to each bank entry; bank_labels: (N,) int64 -> (B, C) float32,
+    rows sum to 1.
+    """
+    logits = (sims - 1.0) * gamma                                # (B, N), <= 0
+    logits = logits - logits.max(dim=1, keepdim=True).values     # best entry -> exp(0)
+    votes = torch.zeros(sims.shape[0], num_classes, dtype=logits.dtype, device=logits.device)
+    votes.index_add_(1, bank_labels, logits.exp_())
+    return votes / votes.sum(dim=1, keepdim=True)
+
+
 def class_scores(query: torch.Tensor, bank_feats: torch.Tensor, bank_labels: torch.Tensor,
                  num_classes: int, gamma: float) -> torch.Tensor:
     """Kernel-vote shares.
 
     query: (B, d) unit rows; bank_feats: (N, d) unit rows; bank_labels: (N,) int64
-    -> (B, C) float32, rows sum to 1.
+    -> (B, C) float32, rows sum to 1. Queries are processed in blocks so a large
+    bank never needs a huge similarity matrix.
     """
-    out = []
     step = max(1, _MAX_BLOCK // max(1, bank_feats.shape[0]))
-    for q in query.split(step):
-        logits = (q @ bank_feats.T - 1.0) * gamma                  # (b, N), <= 0
-        logits = logits - logits.max(dim=1, keepdim=True).values    # best entry -> exp(0)
-        votes = torch.zeros(q.shape[0], num_classes, dtype=logits.dtype, device=logits.device)
-        votes.index_add_(1, bank_labels, logits.exp_())
-        out.append(votes / votes.sum(dim=1, keepdim=True))
+    out = [votes_from_similarity(q @ bank_feats.T, bank_labels, num_classes, gamma)
+           for q in query.split(step)]
     return torch.cat(out) if out else torch.zeros(0, num_classes)
 
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 import math
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 # Bump whenever the encoder's output changes for a given configuration, so that
 # banks built by an older encoder are refused instead of silently mis-matched.

@@ -64,7 +64,7 @@ def fps(xyz: torch.Tensor, m: int) -> torch.Tensor:
 
 
 def knn(xyz: torch.Tensor, centres: torch.Tensor, k: int) -> torch.Tensor:
-    """k nearest points of each centre: xyz (N, 3), centres (S, 3) -> (S, k) int64.
+    """K nearest points of each centre: xyz (N, 3), centres (S, 3) -> (S, k) int64.
 
     Ordered by distance, ties by lowest index (stable sort).
     """

@@ -56,7 +56,7 @@ def run_fewshot(labels: np.ndarray, encode: Callable[[np.ndarray], torch.Tensor]
     rng = np.random.default_rng(seed)
     eps = [sample_episode(labels, ways, shots, queries, rng) for _ in range(episodes)]
     needed = np.unique(np.concatenate([np.concatenate(e[:2]) for e in eps]))
-    feats = dict(zip(needed.tolist(), encode(needed)))
+    feats = dict(zip(needed.tolist(), encode(needed), strict=True))
     accs = []
     for support, query, classes in eps:
         remap = {int(c): i for i, c in enumerate(classes)}

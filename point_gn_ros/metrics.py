@@ -29,7 +29,8 @@ def accuracy_report(true: np.ndarray, pred: np.ndarray, class_names: list[str]) 
         'mean_class_accuracy': float(per_class_acc[present].mean()) if present.any() else 0.0,
         'unknown': int((pred < 0).sum()),
         'per_class': [{'class': n, 'support': int(s), 'accuracy': float(a)}
-                      for n, s, a, p in zip(class_names, support, per_class_acc, present) if p],
+                      for n, s, a, p in zip(class_names, support, per_class_acc, present,
+                                            strict=True) if p],
         'confusion': cm.tolist(),
     }
 

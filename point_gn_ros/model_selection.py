@@ -11,7 +11,7 @@ import itertools
 import numpy as np
 import torch
 
-from point_gn_ros.classifier import class_scores
+from point_gn_ros.classifier import votes_from_similarity
 from point_gn_ros.feature_transform import FeatureTransform, Standardize
 
 DEFAULT_GAMMAS = tuple(float(g) for g in np.geomspace(5, 5000, 19).round(1))
@@ -47,8 +47,8 @@ def _fold_scores(feats: torch.Tensor, labels: torch.Tensor, num_classes: int,
                  train: np.ndarray, val: np.ndarray, standardize: Standardize,
                  dims: int | None, gammas: tuple[float, ...]) -> list[torch.Tensor]:
     tf = FeatureTransform.fit(feats[train], standardize, dims)
-    bank, query = tf(feats[train]), tf(feats[val])
-    return [class_scores(query, bank, labels[train], num_classes, g) for g in gammas]
+    sims = tf(feats[val]) @ tf(feats[train]).T      # once per fold, reused for every gamma
+    return [votes_from_similarity(sims, labels[train], num_classes, g) for g in gammas]
 
 
 def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
@@ -77,7 +77,7 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
                 correct[gi, val] = (pred == lab[val]).numpy()
                 top[gi, val] = best_s.numpy()
         acc = correct.mean(axis=1)
-        for g, a in zip(gammas, acc):
+        for g, a in zip(gammas, acc, strict=True):
             table.append({'standardize': std, 'dims': dims, 'gamma': g, 'cv_accuracy': float(a)})
         gi = int(np.argmax(acc))
         if best is None or acc[gi] > best.cv_accuracy + 1e-12:

@@ -17,7 +17,7 @@ def require_shared(path: Path = SHARED) -> Path:
     """Return path, or skip when it is absent (a user's clone); CI sets the switch that fails."""
     if path.exists():
         return path
-    reason = f'{path} is absent: the shared data sits beside the repository only on dev/CI machines'
+    reason = f'{path} is absent: shared data sits beside the repository on dev/CI machines only'
     if os.environ.get('POINT_GN_REQUIRE_SHARED') == '1':
         pytest.fail(reason + ' (POINT_GN_REQUIRE_SHARED=1)')
     pytest.skip(reason)

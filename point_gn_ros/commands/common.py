@@ -11,7 +11,8 @@ def add_dataset_args(p: argparse.ArgumentParser, default_split: str) -> None:
     p.add_argument('dataset', metavar='DATASET',
                    help='dataset path: ModelNet40 h5 folder, ScanObjectNN h5 folder or file, '
                         'or a folder tree <class>/<file> (.pcd .ply .npy .txt .xyz)')
-    p.add_argument('--split', default=default_split, help=f'split to read (default {default_split})')
+    p.add_argument('--split', default=default_split,
+                   help=f'split to read (default {default_split})')
     p.add_argument('--format', choices=DATASET_FORMATS, default=None,
                    help='dataset kind (default: detected)')
     p.add_argument('--variant', default=None,

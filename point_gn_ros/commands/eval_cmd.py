@@ -49,7 +49,7 @@ def _eval(args: argparse.Namespace) -> int:
     bank = FeatureBank.load(args.bank)
     ds = open_dataset_from_args(args)
     if list(ds.class_names) != list(bank.class_names):
-        raise DatasetError(f'{ds.path}: class names differ from the bank\'s '
+        raise DatasetError(f"{ds.path}: class names differ from the bank's "
                            f'({len(ds.class_names)} vs {len(bank.class_names)} classes)')
     enc = make_encoder(bank.config, args.device)
     feats = encode_dataset(ds, enc, args.batch_size, progress=not args.json,
@@ -90,7 +90,7 @@ def _fewshot(args: argparse.Namespace) -> int:
         if todo:
             feats = encode_clouds([ds[i][0] for i in todo], enc, batch_size=args.batch_size,
                                   progress=None if args.json else 'encoding')
-            cached.update(zip(todo, feats))
+            cached.update(zip(todo, feats, strict=True))
         return torch.stack([cached[int(i)] for i in idx])
 
     results = [run_fewshot(labels, encode, w, s, args.queries, args.episodes, args.seed)

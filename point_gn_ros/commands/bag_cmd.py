@@ -1,0 +1,146 @@
+"""`point_gn bag write|info` and `point_gn replay`: ground-truth bags and their replay."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from point_gn_ros.commands.common import add_dataset_args
+
+DEFAULT_TOPIC = '/segmented_objects'   # = point_gn_ros.bag.DEFAULT_TOPIC (kept import-free)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    bag = sub.add_parser('bag', help='write a dataset split as a ground-truth rosbag2 bag')
+    actions = bag.add_subparsers(dest='bag_action', required=True, metavar='ACTION')
+
+    w = actions.add_parser(
+        'write', help='dataset split -> bag of PointCloud2 objects with gt_label',
+        description='Write a dataset split as sensor_msgs/PointCloud2 messages (x, y, z, '
+                    'gt_label [, segment]) plus the class names on /point_gn/class_names.')
+    add_dataset_args(w, 'test')
+    w.add_argument('-o', '--output', required=True, metavar='BAG',
+                   help='bag directory to create (must not exist)')
+    w.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
+                   help='rosbag2 storage plugin (default mcap)')
+    w.add_argument('--rate', type=float, default=10.0, metavar='HZ',
+                   help='recorded message rate (header stamps and bag times; default 10)')
+    w.add_argument('--objects-per-message', type=int, default=1, metavar='N',
+                   help='objects per message; > 1 adds an INT32 segment field (default 1)')
+    w.add_argument('--topic', default=DEFAULT_TOPIC, help=f'cloud topic (default {DEFAULT_TOPIC})')
+    w.add_argument('--frame-id', default='sensor', help="header frame_id (default 'sensor')")
+    w.add_argument('--limit', type=int, default=None, metavar='N',
+                   help='write only the first N objects')
+    w.add_argument('--sensor-frame', action='store_true',
+                   help='place objects in a sensor frame: 0.3-2 m in size, yawed, 2-8 m ahead')
+    w.add_argument('--max-yaw', type=float, default=180.0, metavar='DEG',
+                   help='--sensor-frame: yaw about z drawn from [-DEG, DEG] (default 180)')
+    w.add_argument('--noise', type=float, default=0.0, metavar='SIGMA_M',
+                   help='Gaussian noise sigma (metres with --sensor-frame; default 0)')
+    w.add_argument('--dropout', type=float, default=0.0, metavar='P',
+                   help='drop each point with probability P (default 0)')
+    w.add_argument('--partial', type=float, default=1.0, metavar='SHARE',
+                   help='partial view: keep SHARE of the points by a random plane cut')
+    w.add_argument('--seed', type=int, default=0, help='seed of the realism transforms')
+    w.set_defaults(func=_write)
+
+    i = actions.add_parser('info', help='check a bag and summarise its ground truth')
+    i.add_argument('bag', metavar='BAG', help='bag directory (or .mcap / .db3 file)')
+    i.add_argument('--topic', default=None, help='cloud topic (default: auto)')
+    i.set_defaults(func=_info)
+
+    r = sub.add_parser(
+        'replay', help='replay a ground-truth bag through the classifier node and report',
+        description="Publish the bag's clouds to the running classifier node (or only listen, "
+                    'or classify offline), match its answers by header stamp and report '
+                    'accuracy, delivery and latency.')
+    r.add_argument('bag', metavar='BAG', help='bag written by `point_gn bag write`')
+    how = r.add_mutually_exclusive_group()
+    how.add_argument('--offline', action='store_true',
+                     help='no ROS graph: classify with the core library (same report)')
+    how.add_argument('--listen-only', action='store_true',
+                     help='do not publish (play the bag with ros2 bag play); listen and match')
+    how.add_argument('--lockstep', action='store_true',
+                     help='send the next message only when the previous one is answered '
+                          '(or --timeout passes)')
+    how.add_argument('--rate', type=float, default=1.0, metavar='R',
+                   help='publish at R x the recorded rate (default 1)')
+    r.add_argument('--topic', default=None, help='cloud topic in the bag (default: auto)')
+    r.add_argument('--node-name', default=None, metavar='NAME',
+                   help='classifier node name (answers on /NAME/classifications; default: the '
+                        'node subscribed to the cloud topic)')
+    r.add_argument('--timeout', type=float, default=10.0, metavar='S',
+                   help='lockstep: wait per message; otherwise: give up after S s without an '
+                        'answer (default 10)')
+    r.add_argument('--discovery-timeout', type=float, default=60.0, metavar='S',
+                   help='wait for the node (listen-only: for the first answer; default 60)')
+    r.add_argument('--best-effort', action='store_true',
+                   help='publish best-effort (default reliable)')
+    r.add_argument('--bank', default=None, help='offline: bank file (default: the shipped bank)')
+    r.add_argument('--device', default='cpu', help='offline: torch device (default cpu)')
+    r.add_argument('--unknown-threshold', type=float, default=None,
+                   help='offline: open-set threshold, as the node parameter')
+    r.add_argument('--min-points', type=int, default=16,
+                   help='offline: skip objects with fewer points, as the node (default 16)')
+    r.add_argument('--json', default=None, metavar='REPORT.json', help='write the JSON report')
+    r.add_argument('--markdown', default=None, metavar='REPORT.md',
+                   help='write the Markdown report')
+    r.add_argument('--png', default=None, metavar='PREFIX',
+                   help='write PREFIX_confusion.png and PREFIX_latency.png')
+    r.add_argument('--quiet', action='store_true', help='no report on stdout')
+    r.set_defaults(func=_replay)
+
+
+def _write(args: argparse.Namespace) -> int:
+    from point_gn_ros.bag.realism import Realism
+    from point_gn_ros.bag.writer import WriteOptions, write_bag
+    from point_gn_ros.commands.common import open_dataset_from_args
+
+    opts = WriteOptions(
+        storage=args.storage, rate_hz=args.rate, objects_per_message=args.objects_per_message,
+        topic=args.topic, limit=args.limit, frame_id=args.frame_id, seed=args.seed,
+        realism=Realism(args.sensor_frame, args.noise, args.dropout, args.partial,
+                        args.max_yaw))
+    opts.check()   # before the (slow) dataset opens
+    ds = open_dataset_from_args(args)
+    summary = write_bag(ds, args.output, opts, source=f'{ds.path} [{ds.split}]',
+                        progress=sys.stderr.isatty())
+    print(summary.line())
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    from point_gn_ros.bag.reader import read_bag
+
+    contents = read_bag(args.bag, args.topic)
+    print(contents.summary())
+    for key, value in sorted(contents.custom.items()):
+        if not key.endswith('class_names'):
+            print(f'  {key}: {value}')
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from point_gn_ros.bag.reader import read_bag
+    from point_gn_ros.bag.report import build_report, format_markdown, write_outputs
+
+    contents = read_bag(args.bag, args.topic, keep_clouds=args.offline)
+    if args.offline:
+        from point_gn_ros.bag.offline import run_offline
+        result = run_offline(contents, args.bank, args.device, args.unknown_threshold,
+                             args.min_points, progress=sys.stderr.isatty())
+    else:
+        from point_gn_ros.bag.replay import ReplayOptions, run_replay
+        mode = 'listen-only' if args.listen_only else 'lockstep' if args.lockstep else 'rate'
+        result = run_replay(contents, ReplayOptions(
+            mode=mode, rate=args.rate, node_name=args.node_name, timeout=args.timeout,
+            discovery_timeout=args.discovery_timeout, reliable=not args.best_effort))
+    report = build_report(contents, result)
+    write_outputs(report, contents.class_names, json_path=args.json,
+                  markdown_path=args.markdown, png_prefix=args.png)
+    if not args.quiet:
+        print(format_markdown(report, contents.class_names))
+    elif not (args.json or args.markdown):
+        print(json.dumps({k: report[k] for k in ('accuracy', 'sent', 'answered', 'latency_ms')}))
+    return 0
