@@ -33,7 +33,7 @@ bench: $(STAMP)
 
 # Rebuild the shipped default bank from ../shared (only when the encoder version changes).
 default-bank: $(STAMP)
-	$(VENV)/bin/point_gn bank build $(MODELNET) --split train --default-bank \
+	$(VENV)/bin/point_gn bank build $(MODELNET) --split train --default-bank --yaw-align \
 		-o point_gn_ros/data/modelnet40_default.npz
 
 colcon-build: $(STAMP)

@@ -10,7 +10,7 @@ setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
-    package_data={package_name: ['data/*.npz']},
+    package_data={package_name: ['data/*.npz', 'kernels/*.c']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
@@ -18,7 +18,7 @@ setup(
         ('share/' + package_name + '/banks', glob('point_gn_ros/data/*default*.npz')),
     ],
     install_requires=['setuptools', 'numpy', 'h5py', 'tqdm'],
-    zip_safe=True,
+    zip_safe=False,
     maintainer='point_gn_ros maintainers',
     maintainer_email='point-gn-ros@example.com',
     description='Online Point-GN classification of segmented PointCloud2 objects.',

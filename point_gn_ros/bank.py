@@ -120,6 +120,8 @@ class FeatureBank:
         path = Path(path) if path else default_bank_path()
         if not path.is_file():
             raise BankError(f'{path}: bank file not found')
+        if not zipfile.is_zipfile(path):
+            raise BankError(f'{path}: not a bank (.npz zip archive) file, or truncated')
         try:
             with np.load(path, allow_pickle=False) as z:
                 missing = [k for k in _REQUIRED if k not in z.files]

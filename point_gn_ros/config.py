@@ -21,6 +21,9 @@ class EncoderConfig:
     stages: int = 4
     k: int = 120
     sigma: float = 0.4
+    # Rotate each cloud about the vertical (z) axis into a canonical heading before
+    # encoding: yaw-invariant classification for upright objects seen from any side.
+    yaw_align: bool = False
 
     def __post_init__(self) -> None:
         if self.num_points < 2 ** self.stages:

@@ -30,14 +30,17 @@ class Encoder(Protocol):
 
 
 def make_encoder(cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu',
-                 naive: bool | None = None) -> Encoder:
-    """The fast encoder, or the naive oracle if asked (or POINT_GN_NAIVE=1)."""
+                 naive: bool | None = None, threads: int | None = None) -> Encoder:
+    """The fast encoder, or the naive oracle if asked (or POINT_GN_NAIVE=1).
+
+    threads: worker threads of the fast encoder (default: every usable CPU).
+    """
     if naive is None:
         naive = os.environ.get('POINT_GN_NAIVE', '') == '1'
     if not naive:
         try:
             from point_gn_ros.encoder import PointGNEncoder
-            return PointGNEncoder(cfg, device=device)
+            return PointGNEncoder(cfg, device=device, threads=threads)
         except ImportError:
             pass
     from point_gn_ros.encoder_naive import NaiveEncoder
@@ -53,7 +56,7 @@ def encode_clouds(clouds: Iterable[np.ndarray] | np.ndarray, encoder: Encoder,
 
     progress: a tqdm description, or None for no progress bar.
     """
-    n = encoder.cfg.num_points
+    n, yaw_align = encoder.cfg.num_points, encoder.cfg.yaw_align
     if total is None and hasattr(clouds, '__len__'):
         total = len(clouds)  # type: ignore[arg-type]
     bar = None
@@ -69,7 +72,7 @@ def encode_clouds(clouds: Iterable[np.ndarray] | np.ndarray, encoder: Encoder,
         batch.clear()
 
     for cloud in clouds:
-        batch.append(prepare(cloud, n, resample, seed))
+        batch.append(prepare(cloud, n, resample, seed, yaw_align))
         if len(batch) == batch_size:
             flush()
     if batch:
@@ -84,9 +87,9 @@ class Recognizer:
 
     def __init__(self, bank: FeatureBank, device: str = 'cpu', resample: ResampleMethod = 'fps',
                  top_k: int = 5, unknown_threshold: float | None = None,
-                 encoder: Encoder | None = None) -> None:
+                 encoder: Encoder | None = None, threads: int | None = None) -> None:
         self.bank = bank
-        self.encoder = encoder or make_encoder(bank.config, device)
+        self.encoder = encoder or make_encoder(bank.config, device, threads=threads)
         bank.check_config(self.encoder.cfg)
         self.classifier = Classifier(bank, device, unknown_threshold)
         self.resample = resample
@@ -95,9 +98,11 @@ class Recognizer:
     @classmethod
     def from_bank(cls, path: str | os.PathLike[str] | None = None, device: str = 'cpu',
                   resample: ResampleMethod = 'fps', top_k: int = 5,
-                  unknown_threshold: float | None = None) -> 'Recognizer':
+                  unknown_threshold: float | None = None,
+                  threads: int | None = None) -> 'Recognizer':
         """Load a bank (None: the shipped default) and build the matching encoder."""
-        return cls(FeatureBank.load(path), device, resample, top_k, unknown_threshold)
+        return cls(FeatureBank.load(path), device, resample, top_k, unknown_threshold,
+                   threads=threads)
 
     @property
     def class_names(self) -> list[str]:

@@ -21,6 +21,7 @@ import torch
 
 from point_gn_ros.bank_builder import build_bank, encode_dataset
 from point_gn_ros.classifier import Classifier, class_scores
+from point_gn_ros.config import EncoderConfig
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.metrics import accuracy_report
 from point_gn_ros.model_selection import DEFAULT_GAMMAS
@@ -35,10 +36,13 @@ def main() -> None:
     ap.add_argument('--dims', type=int, nargs='+', default=[0])
     ap.add_argument('--standardize', nargs='+', default=['none', 'centre', 'standardize'])
     ap.add_argument('--shuffle-check', action='store_true')
+    ap.add_argument('--yaw-align', action='store_true', help='yaw-canonical encoder config')
+    ap.add_argument('--yawed-test', action='store_true',
+                    help='also score every test cloud rotated by a random yaw (seeded)')
     ap.add_argument('--out', default=None, help='write the JSON summary here')
     args = ap.parse_args()
 
-    enc = make_encoder()
+    enc = make_encoder(EncoderConfig(yaw_align=args.yaw_align))
     t0 = time.perf_counter()
     enc.warmup()
     print(f'warm-up {time.perf_counter() - t0:.1f} s')
@@ -83,6 +87,21 @@ def main() -> None:
         changed = int((pred_s != pred).sum())
         print(f'point-order check: {changed} of {len(test)} labels changed after shuffling')
         result['shuffle_changed_labels'] = changed
+    if args.yawed_test:
+        rng = np.random.default_rng(0)
+
+        def yawed(xyz: np.ndarray) -> np.ndarray:
+            a = rng.uniform(0, 2 * np.pi)
+            rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+            return (xyz @ rot.T).astype(np.float32)
+
+        f_yaw = encode_clouds((yawed(test[i][0]) for i in range(len(test))), enc,
+                              total=len(test), progress='yawed test')
+        pred_y = Classifier(bank).classify(f_yaw, top_k=1).labels
+        rep = accuracy_report(test.labels, pred_y, test.class_names)
+        print(f'randomly yawed test: OA {100 * rep["accuracy"]:.2f} %, '
+              f'mAcc {100 * rep["mean_class_accuracy"]:.2f} %')
+        result['yawed_test'] = {k: rep[k] for k in ('accuracy', 'mean_class_accuracy')}
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=2))
 

@@ -88,7 +88,7 @@ def test_each_corruption_gives_one_clear_error(tmp_path: Path, changes: dict,
 def test_truncated_file(tmp_path: Path) -> None:
     path = _bank().save(tmp_path / 'bank.npz')
     path.write_bytes(path.read_bytes()[:2000])
-    with pytest.raises(BankError, match='corrupt'):
+    with pytest.raises(BankError, match='truncated'):
         FeatureBank.load(path)
 
 

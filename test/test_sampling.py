@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from point_gn_ros.encoder_naive import fps as oracle_fps
-from point_gn_ros.sampling import FPS_MAX_INPUT, fps_indices, normalize, prepare, resample
+from point_gn_ros.sampling import (FPS_MAX_INPUT, canonical_yaw, fps_indices, normalize, prepare,
+                                   resample)
 
 
 def _cloud(n: int, seed: int = 0) -> np.ndarray:
@@ -87,3 +88,28 @@ def test_normalize_is_scale_and_translation_invariant() -> None:
 def test_degenerate_clouds_prepare_to_finite_points(cloud: np.ndarray) -> None:
     out = prepare(cloud)
     assert out.shape == (1024, 3) and np.isfinite(out).all()
+
+
+def _yaw(xyz: np.ndarray, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return (xyz @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], np.float32).T).astype(np.float32)
+
+
+def test_canonical_yaw_undoes_any_rotation_about_z() -> None:
+    rng = np.random.default_rng(5)
+    cloud = normalize(rng.normal(size=(1024, 3)) * np.array([3.0, 1.0, 0.5]) + np.array(
+        [0.0, 0.0, 0.0]) + rng.exponential(size=(1024, 3)))
+    ref = canonical_yaw(cloud)
+    for angle in (0.3, 1.7, np.pi, 4.0):
+        np.testing.assert_allclose(canonical_yaw(_yaw(cloud, angle)), ref, atol=1e-4)
+    # heights untouched, only a rotation (+ reflection) of x-y
+    np.testing.assert_array_equal(ref[:, 2], cloud[:, 2])
+    np.testing.assert_allclose(np.linalg.norm(ref, axis=1), np.linalg.norm(cloud, axis=1),
+                               atol=1e-5)
+
+
+def test_prepare_yaw_align_only_when_asked() -> None:
+    cloud = _cloud(2000)
+    np.testing.assert_array_equal(prepare(cloud), normalize(resample(cloud, 1024)))
+    assert not np.allclose(prepare(cloud, yaw_align=True), prepare(cloud))
+    assert np.isfinite(prepare(np.zeros((3, 3), np.float32), yaw_align=True)).all()

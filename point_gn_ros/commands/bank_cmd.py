@@ -21,6 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument('--sigma', type=float, default=None,
                    help='GPE sigma (default 0.4; the paper uses 0.3 for ScanObjectNN)')
     b.add_argument('--k', type=int, default=None, help='neighbours per centre (default 120)')
+    b.add_argument('--yaw-align', action='store_true',
+                   help='rotate every cloud into a canonical heading about z before encoding '
+                        '(yaw-invariant bank, for upright objects seen from any side)')
     b.add_argument('--dtype', choices=('float16', 'float32'), default='float16',
                    help='stored feature precision (default float16)')
     b.add_argument('--dims', type=int, nargs='+', default=None,
@@ -49,6 +52,7 @@ def _build(args: argparse.Namespace) -> int:
 
     ds = open_dataset_from_args(args)
     overrides = {k: v for k, v in (('sigma', args.sigma), ('k', args.k)) if v is not None}
+    overrides['yaw_align'] = args.yaw_align
     cfg = EncoderConfig(**overrides)
     dims = [None if d == 0 else d for d in (args.dims or [0])]
     if args.default_bank:

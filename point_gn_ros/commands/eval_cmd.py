@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
+
 from point_gn_ros.commands.common import add_dataset_args, add_encoder_args
 
 
@@ -21,6 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="override the bank's gamma (for comparisons only)")
     e.add_argument('--unknown-threshold', type=float, default=None,
                    help='open-set threshold on the top score (<0: the bank calibration)')
+    e.add_argument('--random-yaw', type=int, default=None, metavar='SEED',
+                   help='rotate every object by a random angle about z (seeded): how the bank '
+                        'copes with objects seen from any side')
     e.set_defaults(func=_eval)
 
     f = sub.add_parser('fewshot', help='N-way K-shot episodes (default: the paper settings)')
@@ -33,6 +38,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument('--seed', type=int, default=0, help='episode seed')
     f.add_argument('--json', action='store_true', help='print results as JSON')
     f.set_defaults(func=_fewshot)
+
+
+def _yaw(xyz: np.ndarray, angle: float) -> np.ndarray:
+    """Rotate (N, 3) points by `angle` radians about z."""
+    c, s = np.cos(angle), np.sin(angle)
+    return (xyz @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T).astype(np.float32)
 
 
 def _eval(args: argparse.Namespace) -> int:
@@ -52,13 +63,20 @@ def _eval(args: argparse.Namespace) -> int:
         raise DatasetError(f"{ds.path}: class names differ from the bank's "
                            f'({len(ds.class_names)} vs {len(bank.class_names)} classes)')
     enc = make_encoder(bank.config, args.device)
-    feats = encode_dataset(ds, enc, args.batch_size, progress=not args.json,
-                           cache_dir=Path(args.cache) if args.cache else None)
+    if args.random_yaw is None:
+        feats = encode_dataset(ds, enc, args.batch_size, progress=not args.json,
+                               cache_dir=Path(args.cache) if args.cache else None)
+    else:
+        from point_gn_ros.recognizer import encode_clouds
+        angles = np.random.default_rng(args.random_yaw).uniform(0, 2 * np.pi, len(ds))
+        feats = encode_clouds((_yaw(ds[i][0], angles[i]) for i in range(len(ds))), enc,
+                              batch_size=args.batch_size, total=len(ds),
+                              progress=None if args.json else 'encoding (random yaw)')
     clf = Classifier(bank, args.device, args.unknown_threshold, gamma=args.gamma)
     res = clf.classify(torch.as_tensor(feats), top_k=1)
     report = accuracy_report(ds.labels, res.labels, bank.class_names)
     report.update(bank=str(bank.path), dataset=str(ds.path), split=ds.split,
-                  gamma=clf.gamma)
+                  gamma=clf.gamma, random_yaw_seed=args.random_yaw)
     if args.confusion:
         plot_confusion(report['confusion'], bank.class_names, args.confusion,
                        f'{Path(ds.path).name} [{ds.split}]: {100 * report["accuracy"]:.2f} %')

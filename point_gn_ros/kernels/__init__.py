@@ -1,0 +1,286 @@
+"""Compiled C kernels for the fast encoder: built with the system C compiler, cached on disk.
+
+The sources (pgn_geom.c, pgn_stage.c) ship with the package; `load()` compiles
+them on first use (about a second with gcc) into a per-user cache keyed by the
+source text, the compiler, its flags and the CPU, then loads the shared library
+with ctypes. ctypes releases the GIL during calls, so Python threads run
+clouds in parallel. No network, no Python headers, no torch headers.
+
+pgn_geom.c is compiled without fast-math and with -ffp-contract=off (distances
+must round exactly like the oracle's); pgn_stage.c with -ffast-math (vectorised
+code, glibc's libmvec). The link step omits -ffast-math so that gcc does
+not add crtfastmath.o, which would flush denormals to zero process-wide.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+from pathlib import Path
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+
+import numpy as np
+
+_SRC_DIR = Path(__file__).resolve().parent
+_SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
+            'pgn_stage.c': ['-ffast-math']}
+_COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
+ABI_VERSION = 1
+_log = logging.getLogger(__name__)
+
+_lock = threading.Lock()
+_lib: ctypes.CDLL | None = None
+_error: str | None = None
+
+
+def cache_dir() -> Path:
+    """Where built kernels live: $POINT_GN_KERNEL_CACHE, else ~/.cache/point_gn_ros/kernels."""
+    env = os.environ.get('POINT_GN_KERNEL_CACHE')
+    if env:
+        return Path(env)
+    base = os.environ.get('XDG_CACHE_HOME') or str(Path.home() / '.cache')
+    return Path(base) / 'point_gn_ros' / 'kernels'
+
+
+def _compiler() -> str | None:
+    return os.environ.get('CC') or shutil.which('gcc') or shutil.which('cc')
+
+
+def _arch_flags() -> list[str]:
+    # -march=native is safe because the library is built on the machine that runs it
+    # (the cache key includes the CPU description).
+    return ['-march=native'] if platform.machine() in ('x86_64', 'AMD64', 'aarch64') else []
+
+
+def _cpu_id() -> str:
+    try:
+        text = Path('/proc/cpuinfo').read_text()
+    except OSError:
+        return platform.processor()
+    keep = [ln for ln in text.splitlines()
+            if ln.split(':')[0].strip() in ('model name', 'flags', 'Features', 'CPU part')]
+    return '\n'.join(sorted(set(keep)))
+
+
+def _flags() -> list[str]:
+    # POINT_GN_KERNEL_PROFILE=1 builds per-phase CPU timers (pgn_prof) for profiling.
+    profile = ['-DPGN_PROFILE'] if os.environ.get('POINT_GN_KERNEL_PROFILE') else []
+    return _COMMON + _arch_flags() + profile
+
+
+# Build variants, best first: a compiler that rejects -march=native still gets a portable
+# build (same results, slower).
+_VARIANTS = ('native', 'portable')
+
+
+def _variant_flags(variant: str) -> list[str]:
+    return _flags() if variant == 'native' else [f for f in _flags() if f not in _arch_flags()]
+
+
+def _sources() -> dict[str, bytes]:
+    """One snapshot of the sources: what is hashed is exactly what is compiled."""
+    return {name: (_SRC_DIR / name).read_bytes() for name in _SOURCES}
+
+
+def _key(cc: str, sources: dict[str, bytes]) -> str | None:
+    h = hashlib.sha256()
+    for name in sorted(sources):
+        h.update(name.encode())
+        h.update(sources[name])
+        h.update(' '.join(_SOURCES[name]).encode())
+    try:
+        version = subprocess.run([cc, '--version'], capture_output=True, text=True,
+                                 check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    h.update(' '.join(_flags() + _arch_flags()).encode())
+    h.update(version.encode())
+    h.update(_cpu_id().encode())
+    return h.hexdigest()[:20]
+
+
+def _compile(cc: str, sources: dict[str, bytes], variant: str, out: Path) -> None:
+    flags = _variant_flags(variant)
+    with tempfile.TemporaryDirectory(prefix='pgn_build_') as tmp:
+        objs = []
+        for name, extra in _SOURCES.items():
+            src = Path(tmp) / name
+            src.write_bytes(sources[name])
+            obj = Path(tmp) / (name + '.o')
+            subprocess.run([cc, *flags, *extra, '-c', str(src), '-o', str(obj)],
+                           check=True, capture_output=True, text=True)
+            objs.append(str(obj))
+        tmp_lib = Path(tmp) / out.name
+        subprocess.run([cc, '-shared', '-o', str(tmp_lib), *objs, '-lm'],
+                       check=True, capture_output=True, text=True)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staged = out.with_name(f'{out.name}.{os.getpid()}.tmp')
+        shutil.copyfile(tmp_lib, staged)
+        os.replace(staged, out)  # atomic: concurrent builders never see half a file
+
+
+def library_path(variant: str = 'native') -> Path | None:
+    """Where the kernel library for these sources/compiler/CPU is (or would be) cached."""
+    cc = _compiler()
+    key = _key(cc, _sources()) if cc else None
+    return None if key is None else cache_dir() / f'libpgn_{key}_{variant}.so'
+
+
+def _find_or_build() -> tuple[Path, str]:
+    """Best cached variant, else build one: (path, variant). Raises the last build error."""
+    cc = _compiler()
+    if cc is None:
+        raise OSError('no C compiler (gcc/cc) found')
+    sources = _sources()
+    key = _key(cc, sources)
+    if key is None:
+        raise OSError(f'C compiler {cc} does not run')
+    dirs = [cache_dir(), Path(tempfile.gettempdir()) / f'point_gn_ros_kernels_{os.getuid()}']
+    last: Exception | None = None
+    # The best variant already built wins, unless a better one may still be buildable.
+    for variant in _VARIANTS:
+        name = f'libpgn_{key}_{variant}.so'
+        hit = next((d / name for d in dirs if (d / name).exists()), None)
+        if hit is not None:
+            return hit, variant
+        if not any((d / (name + '.failed')).exists() for d in dirs):
+            break  # not built yet and not known to fail: build it below
+    for variant in _VARIANTS:
+        name = f'libpgn_{key}_{variant}.so'
+        if any((d / (name + '.failed')).exists() for d in dirs):
+            continue
+        for d in dirs:  # the cache, else a temp dir when the cache is not writable
+            try:
+                _compile(cc, sources, variant, d / name)
+                return d / name, variant
+            except subprocess.CalledProcessError as exc:
+                last = exc
+                try:  # remembered, so that every start does not retry (clear the cache to)
+                    d.mkdir(parents=True, exist_ok=True)
+                    (d / (name + '.failed')).write_text(f'{exc.cmd}\n{exc.stderr}')
+                except OSError:
+                    pass
+                break
+            except OSError as exc:
+                last = exc
+    if last is not None:
+        raise last
+    raise OSError(f'kernel build failed earlier; see {dirs[0]}/libpgn_{key}_*.failed '
+                  '(delete them to retry)')
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    p, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
+    lib.pgn_abi_version.restype = ctypes.c_int
+    lib.pgn_encode.restype = ctypes.c_int
+    lib.pgn_encode.argtypes = [p, i64, i64, i64, i64, i64, f32, p, i64, p]
+    lib.pgn_fps.restype = None
+    lib.pgn_fps.argtypes = [p, p, p, p, i64, i64, p, p]
+    lib.pgn_fps_from.restype = None
+    lib.pgn_fps_from.argtypes = [p, p, p, i64, i64, i64, p, p]
+    lib.pgn_knn.restype = None
+    lib.pgn_knn.argtypes = [p, p, p, i64, p, p, p, i64, i64, p, p, p]
+
+
+def load() -> ctypes.CDLL | None:
+    """The compiled kernels (built on first call), or None when no C compiler works.
+
+    `last_error()` says why it is None. Thread-safe; builds at most once per process.
+    """
+    global _lib, _error
+    with _lock:
+        if _lib is not None or _error is not None:
+            return _lib
+        if os.environ.get('POINT_GN_NO_KERNELS'):
+            _error = 'disabled by POINT_GN_NO_KERNELS'
+            return None
+        try:
+            path, variant = _find_or_build()
+            if variant != 'native':
+                _log.warning('point_gn: using the %s kernel build (slower): %s', variant, path)
+            lib = ctypes.CDLL(str(path))
+            _declare(lib)
+            if lib.pgn_abi_version() != ABI_VERSION:
+                raise OSError(f'kernel ABI {lib.pgn_abi_version()} != {ABI_VERSION}')
+            _lib = lib
+        except (OSError, subprocess.CalledProcessError) as exc:
+            detail = getattr(exc, 'stderr', '') or ''
+            _error = f'{type(exc).__name__}: {exc} {detail}'.strip()
+        return _lib
+
+
+def last_error() -> str | None:
+    """Why `load()` returned None (None when it did not)."""
+    return _error
+
+
+def _require() -> ctypes.CDLL:
+    lib = load()
+    if lib is None:
+        raise RuntimeError(f'compiled kernels unavailable: {last_error()}')
+    return lib
+
+
+def fps_indices(xyz: np.ndarray, m: int) -> np.ndarray:
+    """The encoder's FPS (start: farthest from torch's centroid): (N, 3) float32 -> (m,) int64."""
+    lib = _require()
+    xyz = np.ascontiguousarray(xyz, dtype=np.float32)
+    n = xyz.shape[0]
+    if not 1 <= m <= n:
+        raise ValueError(f'need 1 <= m <= N, got m={m}, N={n}')
+    soa = np.ascontiguousarray(xyz.T)
+    idx = np.empty(m, dtype=np.int64)
+    scratch = np.empty(n, dtype=np.float32)
+    lib.pgn_fps(xyz.ctypes.data, soa[0].ctypes.data, soa[1].ctypes.data, soa[2].ctypes.data,
+                n, m, idx.ctypes.data, scratch.ctypes.data)
+    return idx
+
+
+def fps_from(xyz: np.ndarray, m: int, start: int) -> np.ndarray:
+    """FPS from a given start index: xyz (N, 3) float32 -> (m,) int64, ties to the lowest index.
+
+    The same loop as sampling.fps_indices' numpy version, compiled (releases the GIL).
+    """
+    lib = _require()
+    xyz = np.ascontiguousarray(xyz, dtype=np.float32)
+    n = xyz.shape[0]
+    if not (1 <= m <= n and 0 <= start < n):
+        raise ValueError(f'need 1 <= m <= N and 0 <= start < N, got m={m}, start={start}, N={n}')
+    soa = np.ascontiguousarray(xyz.T)
+    idx = np.empty(m, dtype=np.int64)
+    scratch = np.empty(n, dtype=np.float32)
+    lib.pgn_fps_from(soa[0].ctypes.data, soa[1].ctypes.data, soa[2].ctypes.data, n, m, start,
+                     idx.ctypes.data, scratch.ctypes.data)
+    return idx
+
+
+def knn_indices(xyz: np.ndarray, centres: np.ndarray, k: int) -> np.ndarray:
+    """The encoder's kNN: xyz (N, 3), centres (S, 3) -> (S, min(k, N)) int64.
+
+    Each row sorted by (distance, index) like the oracle's stable sort.
+    """
+    lib = _require()
+    xyz = np.ascontiguousarray(xyz, dtype=np.float32)
+    centres = np.ascontiguousarray(centres, dtype=np.float32)
+    n, s = xyz.shape[0], centres.shape[0]
+    k = min(k, n)
+    p = np.ascontiguousarray(xyz.T)
+    c = np.ascontiguousarray(centres.T)
+    nb = np.empty(s * k + 16, dtype=np.int32)
+    dist = np.empty(n, dtype=np.float32)
+    keys = np.empty(2 * n + 32, dtype=np.uint64)
+    lib.pgn_knn(p[0].ctypes.data, p[1].ctypes.data, p[2].ctypes.data, n, c[0].ctypes.data,
+                c[1].ctypes.data, c[2].ctypes.data, s, k, nb.ctypes.data, dist.ctypes.data,
+                keys.ctypes.data)
+    out = nb[:s * k].reshape(s, k).astype(np.int64)
+    # order each row like the oracle: by distance, then index
+    d = centres[:, None, :] - xyz[out]
+    dd = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
+    order = np.lexsort((out, dd), axis=-1)
+    return np.take_along_axis(out, order, axis=1)

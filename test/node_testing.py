@@ -1,0 +1,333 @@
+"""Helpers for the classifier node tests.
+
+Real data, a tiny bank, the node in its own process, and an in-test rclpy participant on a
+private ROS domain.
+
+Kept out of conftest.py (owned by the datasets tests) and imported by the test_node_* modules.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+import contextlib
+from functools import lru_cache
+import json
+import os
+from pathlib import Path
+import random
+import signal
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+MODELNET = REPO.parent / 'shared' / 'datasets' / 'modelnet40_1024'
+NODE_FQN = '/point_gn_classifier'
+
+# One private DDS domain per test session, so that concurrent sessions on this machine
+# (other people's tests, the demo) never see each other's topics.
+DOMAIN_ID = int(os.environ.get('POINT_GN_TEST_DOMAIN_ID', random.randint(1, 100)))
+
+# A small encoder configuration: the node tests check plumbing, not accuracy, and the
+# naive encoder at 1024 points would make them minutes long.
+TEST_NUM_POINTS = 256
+TEST_K = 32
+BANK_CLASSES = ('airplane', 'bottle', 'chair', 'guitar', 'lamp', 'table')
+
+
+def require_modelnet() -> Path:
+    """MODELNET, or skip (fail when POINT_GN_REQUIRE_SHARED=1) if the shared data is absent."""
+    if MODELNET.is_dir():
+        return MODELNET
+    reason = f'{MODELNET} is absent (shared data sits beside the repository on dev/CI machines)'
+    if os.environ.get('POINT_GN_REQUIRE_SHARED') == '1':
+        pytest.fail(reason + ' (POINT_GN_REQUIRE_SHARED=1)')
+    pytest.skip(reason)
+
+
+@lru_cache(maxsize=2)
+def load_split(split: str) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """ModelNet40 split: xyz (M, 1024, 3) float32, labels (M,) int64, the 40 class names."""
+    import h5py
+
+    root = require_modelnet()
+    xyz, labels, names = [], [], {}
+    for h5 in sorted(root.glob(f'ply_data_{split}*.h5')):
+        with h5py.File(h5, 'r') as f:
+            xyz.append(f['data'][:].astype(np.float32))
+            lab = f['label'][:].reshape(-1).astype(np.int64)
+        labels.append(lab)
+        # ply_data_test0.h5 -> ply_data_test_0_id2file.json ("class/class_0001.npy" each)
+        ids = json.loads((root / f'{h5.stem[:-1]}_{h5.stem[-1]}_id2file.json').read_text())
+        for label, file in zip(lab, ids, strict=True):
+            names[int(label)] = file.split('/')[0]
+    return (np.concatenate(xyz), np.concatenate(labels),
+            tuple(names[i] for i in range(len(names))))
+
+
+def pick(split: str, classes: Sequence[str], per_class: int, offset: int = 0
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """`per_class` clouds of each named class: xyz (M, 1024, 3), labels (M,) (global ids)."""
+    xyz, labels, names = load_split(split)
+    idx = np.concatenate([np.flatnonzero(labels == names.index(c))[offset:offset + per_class]
+                          for c in classes])
+    return xyz[idx], labels[idx]
+
+
+def build_tiny_bank(path: Path) -> Path:
+    """A bank of 3 train clouds for each of BANK_CLASSES, small encoder config (seconds)."""
+    from point_gn_ros.bank_builder import build_bank
+    from point_gn_ros.config import EncoderConfig
+
+    xyz, labels = pick('train', BANK_CLASSES, 3)
+    all_names = load_split('train')[2]
+    local = np.array([BANK_CLASSES.index(all_names[i]) for i in labels], dtype=np.int64)
+
+    class _Dataset:  # the Dataset contract, in memory
+        def __init__(self) -> None:
+            self.labels, self.class_names = local, list(BANK_CLASSES)
+            self.path, self.split, self.format = str(MODELNET), 'train', 'array'
+
+        def __len__(self) -> int:
+            return len(xyz)
+
+        def __getitem__(self, i: int) -> tuple[np.ndarray, int]:
+            return xyz[i], int(local[i])
+
+    cfg = EncoderConfig(num_points=TEST_NUM_POINTS, k=TEST_K)
+    bank = build_bank(_Dataset(), cfg, folds=3, progress=False, gammas=(10.0, 100.0, 1000.0),
+                      standardize_options=('none',))
+    return bank.save(path, dtype='float32')
+
+
+def to_sensor_frame(xyz: np.ndarray, rng: np.random.Generator, noise: float = 0.002
+                    ) -> np.ndarray:
+    """A unit-sphere dataset cloud as seen by a sensor: metres, rotated about z, translated."""
+    yaw = rng.uniform(-np.pi, np.pi)
+    c, s = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)
+    scale = rng.uniform(0.3, 0.8)
+    offset = np.array([rng.uniform(2, 6), rng.uniform(-2, 2), rng.uniform(0.0, 1.0)], np.float32)
+    out = (xyz * scale) @ rot.T + offset
+    out += rng.normal(0.0, noise, out.shape).astype(np.float32)
+    return out.astype(np.float32)
+
+
+def stamp(sec: int, nanosec: int = 0) -> Any:
+    from builtin_interfaces.msg import Time
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def now_stamp() -> Any:
+    ns = time.time_ns()
+    return stamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def cloud_msg(xyz: np.ndarray, frame_id: str, stamp_msg: Any,
+              extra: dict[str, np.ndarray] | None = None) -> Any:
+    """sensor_msgs/PointCloud2 with FLOAT32 x, y, z (+ extra fields)."""
+    from std_msgs.msg import Header
+
+    from point_gn_ros.pointcloud2 import xyz_to_pointcloud2
+    return xyz_to_pointcloud2(Header(frame_id=frame_id, stamp=stamp_msg), xyz, extra)
+
+
+def stamp_key(header: Any) -> tuple[int, int]:
+    return (header.stamp.sec, header.stamp.nanosec)
+
+
+# ------------------------------------------------------------------------------ node process
+
+
+class NodeProcess:
+    """`python -m point_gn_ros.classifier_node` in its own process, output in a log file."""
+
+    def __init__(self, params: dict[str, Any], log_path: Path, domain_id: int = DOMAIN_ID,
+                 extra_env: dict[str, str] | None = None,
+                 params_file: Path | None = None) -> None:
+        args = [sys.executable, '-m', 'point_gn_ros.classifier_node', '--ros-args']
+        if params_file is not None:
+            args += ['--params-file', str(params_file)]
+        for key, value in params.items():
+            args += ['-p', f'{key}:={_param_text(value)}']
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1',
+                   ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', **(extra_env or {}))
+        self.log_path = log_path
+        self._log = open(log_path, 'wb')  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT, env=env,
+                                     cwd=REPO)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors='replace')
+
+    def wait(self, timeout: float) -> int:
+        try:
+            return self.proc.wait(timeout)
+        finally:
+            self._log.close()
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0) -> int:
+        """Send `sig`, wait; SIGKILL if it does not exit. Returns the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self._log.close()
+        return self.proc.returncode
+
+
+def _param_text(value: Any) -> str:
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(_param_text(v) for v in value) + ']'
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return f"'{value}'" if value == '' or value.strip() != value else value
+    return str(value)
+
+
+@contextlib.contextmanager
+def running_node(params: dict[str, Any], log_path: Path) -> Iterator[NodeProcess]:
+    node = NodeProcess(params, log_path)
+    try:
+        yield node
+    finally:
+        node.stop()
+
+
+# ------------------------------------------------------------------------------ test participant
+
+
+class Harness:
+    """An rclpy context/node on DOMAIN_ID with helpers to publish and collect."""
+
+    def __init__(self, name: str = 'node_test') -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+
+        os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.received: dict[str, list[Any]] = {}
+
+    def collect(self, msg_type: Any, topic: str, qos: Any = 10) -> list[Any]:
+        """Subscribe and append every message to a list (returned, also in .received)."""
+        out = self.received.setdefault(topic, [])
+        self.node.create_subscription(msg_type, topic, out.append, qos)
+        return out
+
+    def spin_until(self, predicate: Callable[[], bool], timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return predicate()
+
+    def spin_for(self, seconds: float) -> None:
+        self.spin_until(lambda: False, seconds)
+
+    def wait_for_subscribers(self, publishers: Sequence[Any], node: NodeProcess | None,
+                             timeout: float = 60.0) -> None:
+        """Until the node subscribes to every publisher's topic (or died / timed out)."""
+        def ready() -> bool:
+            if node is not None and node.proc.poll() is not None:
+                raise AssertionError(f'node exited with {node.proc.returncode}:\n{node.log()}')
+            return all(p.get_subscription_count() > 0 for p in publishers)
+        if not self.spin_until(ready, timeout):
+            raise AssertionError(f'node did not subscribe within {timeout} s:\n'
+                                 + (node.log() if node else ''))
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+def latest_diagnostics(diags: list[Any], name_suffix: str = ': pipeline') -> dict[str, str]:
+    """Map key -> value of the newest status whose name ends with name_suffix ({} if none)."""
+    for arr in reversed(diags):
+        for st in arr.status:
+            if st.name.endswith(name_suffix):
+                level = ord(st.level) if isinstance(st.level, bytes) else int(st.level)
+                return {kv.key: kv.value for kv in st.values} | {'_message': st.message,
+                                                                 '_level': str(level)}
+    return {}
+
+
+def offline_labels(bank_path: Path, clouds: Sequence[np.ndarray]) -> np.ndarray:
+    """What the offline Recognizer says about the same clouds (the node must agree)."""
+    from point_gn_ros.recognizer import Recognizer
+
+    rec = Recognizer.from_bank(bank_path)
+    return rec.classify_clouds(list(clouds)).labels
+
+
+def assert_same_labels(node_labels: Sequence[int], bank_path: Path,
+                       clouds: Sequence[np.ndarray], tie: float = 1e-4) -> None:
+    """The node's labels equal the offline Recognizer's for the same clouds.
+
+    Only a near-tie (top-2 scores within `tie`, where float rounding in a different batch
+    may decide) may go to the runner-up.
+    """
+    from point_gn_ros.recognizer import Recognizer
+
+    res = Recognizer.from_bank(bank_path).classify_clouds(list(clouds))
+    for i, got in enumerate(node_labels):
+        if got == res.labels[i]:
+            continue
+        s = res.topk_scores[i]
+        assert len(s) > 1 and s[0] - s[1] < tie and got == res.topk_ids[i, 1], (
+            f'cloud {i}: node says {got}, offline {res.labels[i]} (top-k {res.topk_ids[i]} '
+            f'{res.topk_scores[i]})')
+
+
+def sensor_qos() -> Any:
+    from rclpy.qos import qos_profile_sensor_data
+    return qos_profile_sensor_data
+
+
+def reliable_qos(depth: int = 10) -> Any:
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def latched_qos() -> Any:
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+@pytest.fixture(scope='session')
+def tiny_bank(tmp_path_factory: pytest.TempPathFactory, modelnet_dir: Path) -> Path:
+    """The tiny node-test bank, built once per session (a few seconds).
+
+    modelnet_dir (test/conftest.py) skips, or fails under POINT_GN_REQUIRE_SHARED=1, when
+    the shared data is absent.
+    """
+    assert modelnet_dir == MODELNET
+    path = tmp_path_factory.getbasetemp() / 'node_tiny_bank.npz'
+    return path if path.is_file() else build_tiny_bank(path)
+
+
+@pytest.fixture(scope='module')
+def harness() -> Iterator[Harness]:
+    h = Harness()
+    try:
+        yield h
+    finally:
+        h.close()
