@@ -121,7 +121,7 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                         {'additional_constraints': "one of 'best_effort', 'reliable'"}),
     'qos_depth': (5, 'Input (and output) QoS history depth.',
                   {'integer_range': _int_range(1, 1000)}),
-    'torch_threads': (1, 'Torch intra-op threads and fast-encoder worker threads; small on '
+    'torch_threads': (2, 'Torch intra-op threads and fast-encoder worker threads; bounded on '
                          'purpose so that they do not starve the executor and DDS threads.',
                       {'integer_range': _int_range(1, 256)}),
 }

@@ -159,20 +159,25 @@ def classifier_rows(quick: bool, repeats: int, device: str) -> list[Row]:
     rows: list[Row] = []
     gen = torch.Generator().manual_seed(2)
     sizes = (1_000, 10_000) if quick else (1_000, 10_000, 100_000)
-    for n in sizes:
-        feats = torch.nn.functional.normalize(torch.randn(n, cfg.feature_dim, generator=gen),
-                                              dim=1)
-        bank = FeatureBank(features=feats, labels=torch.randint(0, 40, (n,), generator=gen),
-                           class_names=[f'c{i}' for i in range(40)], config=cfg,
-                           transform=FeatureTransform.identity(cfg.feature_dim), gamma=100.0)
-        clf = Classifier(bank, device=device)
-        for batch in (1, 16):
-            q = torch.randn(batch, cfg.feature_dim, generator=gen)
-            clf.classify(q)
-            t = _median_time(lambda clf=clf, q=q: clf.classify(q), repeats)
-            rows.append(dict(section='classifier', what=f'bank {n:,} entries, batch {batch}',
-                             value=t / batch * 1e3, unit='ms/query', note=''))
-        del bank, clf, feats
+    # 1,620 = raw feature width; 512 = the stored width of the shipped bank (PCA by CV).
+    for dims in (cfg.feature_dim, 512):
+        for n in sizes:
+            feats = torch.nn.functional.normalize(torch.randn(n, dims, generator=gen), dim=1)
+            tf = FeatureTransform(torch.zeros(cfg.feature_dim), torch.ones(cfg.feature_dim),
+                                  None if dims == cfg.feature_dim else
+                                  torch.randn(cfg.feature_dim, dims, generator=gen))
+            bank = FeatureBank(features=feats, labels=torch.randint(0, 40, (n,), generator=gen),
+                               class_names=[f'c{i}' for i in range(40)], config=cfg,
+                               transform=tf, gamma=100.0)
+            clf = Classifier(bank, device=device)
+            for batch in (1, 16, 64):
+                q = torch.randn(batch, cfg.feature_dim, generator=gen)
+                clf.classify(q)
+                t = _median_time(lambda clf=clf, q=q: clf.classify(q), repeats)
+                rows.append(dict(section='classifier',
+                                 what=f'bank {n:,} x {dims} dims, batch {batch}',
+                                 value=t / batch * 1e3, unit='ms/query', note=''))
+            del bank, clf, feats
     return rows
 
 
