@@ -2,9 +2,9 @@
 
 Starts the node as its own process (default bank unless --bank), publishes the test
 objects shipped in point_gn_ros/data/demo_objects.npz (one per class) one at a time in a
-sensor frame (metres, translated, a little noise), prints each answer (true label,
-prediction, score, end-to-end latency) and a summary, then stops the node with Ctrl-C
-semantics (SIGINT). Needs nothing outside the package: no ../shared, no network.
+sensor frame (metres, translated, turned by a random yaw, a little noise), prints each
+answer (true label, prediction, score, end-to-end latency) and a summary, then stops the
+node with Ctrl-C semantics (SIGINT). Needs nothing outside the package: no ../shared, no network.
 """
 
 from __future__ import annotations
@@ -38,6 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='seconds to wait for the node to start, and for each answer')
     p.add_argument('--seed', type=int, default=0, help='sensor-frame placement seed')
     p.add_argument('--node-log', action='store_true', help="show the node's log as it runs")
+    p.add_argument('--no-random-yaw', dest='random_yaw', action='store_false',
+                   help='keep the dataset heading (default: each object turned by a random yaw; '
+                        'the shipped bank is yaw-aligned)')
     return p
 
 
@@ -86,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         correct, latencies, missing = 0, [], 0
         print(f'{"#":>4}  {"true":<12} {"predicted":<12} {"score":>5}  {"latency":>10}')
         for i in range(count):
-            xyz = place_in_sensor_frame(objects.xyz[i], rng)
+            xyz = place_in_sensor_frame(objects.xyz[i], rng, yaw=float(rng.uniform(0, 2 * np.pi))
+                                        if args.random_yaw else 0.0)
             true = objects.class_names[int(objects.labels[i])]
             key, sent = client.send(xyz, FRAME)
             if not client.spin_until(lambda k=key: k in client.answers, args.timeout, node):

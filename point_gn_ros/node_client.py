@@ -46,8 +46,8 @@ def place_in_sensor_frame(xyz: np.ndarray, rng: np.random.Generator, noise: floa
                           yaw: float = 0.0) -> np.ndarray:
     """A unit-sphere object as a sensor sees it: metres, `yaw` radians about z, translated.
 
-    Point-GN features are not rotation invariant, so the default keeps the dataset's
-    orientation (yaw 0); the node normalises position and scale itself.
+    The node normalises position and scale itself; a yaw-aligned bank (the shipped one)
+    also undoes the yaw, any other bank needs the dataset's orientation (yaw 0).
     """
     c, s = np.cos(yaw), np.sin(yaw)
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)

@@ -21,11 +21,11 @@ import sys
 import time
 from typing import Any
 
+from conftest import MODELNET, require_shared
 import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-MODELNET = REPO.parent / 'shared' / 'datasets' / 'modelnet40_1024'
 NODE_FQN = '/point_gn_classifier'
 
 # One private DDS domain per test session, so that concurrent sessions on this machine
@@ -39,22 +39,12 @@ TEST_K = 32
 BANK_CLASSES = ('airplane', 'bottle', 'chair', 'guitar', 'lamp', 'table')
 
 
-def require_modelnet() -> Path:
-    """MODELNET, or skip (fail when POINT_GN_REQUIRE_SHARED=1) if the shared data is absent."""
-    if MODELNET.is_dir():
-        return MODELNET
-    reason = f'{MODELNET} is absent (shared data sits beside the repository on dev/CI machines)'
-    if os.environ.get('POINT_GN_REQUIRE_SHARED') == '1':
-        pytest.fail(reason + ' (POINT_GN_REQUIRE_SHARED=1)')
-    pytest.skip(reason)
-
-
 @lru_cache(maxsize=2)
 def load_split(split: str) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
     """ModelNet40 split: xyz (M, 1024, 3) float32, labels (M,) int64, the 40 class names."""
     import h5py
 
-    root = require_modelnet()
+    root = require_shared(MODELNET)
     xyz, labels, names = [], [], {}
     for h5 in sorted(root.glob(f'ply_data_{split}*.h5')):
         with h5py.File(h5, 'r') as f:
