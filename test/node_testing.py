@@ -138,13 +138,16 @@ class NodeProcess:
 
     def __init__(self, params: dict[str, Any], log_path: Path, domain_id: int = DOMAIN_ID,
                  extra_env: dict[str, str] | None = None,
-                 params_file: Path | None = None) -> None:
-        args = [sys.executable, '-m', 'point_gn_ros.classifier_node', '--ros-args']
+                 params_file: Path | None = None, command: Sequence[str] | None = None,
+                 base_env: dict[str, str] | None = None) -> None:
+        """command: the executable to run (default: this Python's `-m` module)."""
+        args = list(command or [sys.executable, '-m', 'point_gn_ros.classifier_node'])
+        args.append('--ros-args')
         if params_file is not None:
             args += ['--params-file', str(params_file)]
         for key, value in params.items():
             args += ['-p', f'{key}:={_param_text(value)}']
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1',
+        env = dict(base_env or os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1',
                    ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', **(extra_env or {}))
         self.log_path = log_path
         self._log = open(log_path, 'wb')  # noqa: SIM115 - closed in stop()

@@ -89,3 +89,23 @@ def test_eval_random_yaw(bank: Path, tree: Path, capsys: pytest.CaptureFixture) 
                  '--random-yaw', '3']) == 0
     report = json.loads(capsys.readouterr().out)
     assert report['random_yaw_seed'] == 3 and report['count'] == 12
+
+
+def test_scanobjectnn_bank_uses_sigma_03(tmp_path: Path) -> None:
+    import h5py
+
+    xyz, labels, _ = load_modelnet_subset('train', 2)
+    keep = labels < 3                                  # three classes stand in for scans
+    split = tmp_path / 'h5_files' / 'main_split'
+    split.mkdir(parents=True)
+    for name in ('training_objectdataset.h5', 'test_objectdataset.h5'):
+        with h5py.File(split / name, 'w') as f:
+            f['data'] = np.concatenate([xyz[keep], xyz[keep]], axis=1)  # 2048 points
+            f['label'] = labels[keep].astype(np.int64)
+    out = tmp_path / 'sonn.npz'
+    assert main(['bank', 'build', str(tmp_path / 'h5_files'), '--variant', 'OBJ_BG',
+                 '--folds', '2', '-o', str(out)]) == 0
+    from point_gn_ros.bank import FeatureBank
+    bank = FeatureBank.load(out)
+    assert bank.config.sigma == 0.3 and bank.meta['provenance']['format'] == 'scanobjectnn_h5'
+    assert len(bank.class_names) == 15 and len(bank) == int(keep.sum())

@@ -6,6 +6,7 @@ import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,3 +50,47 @@ def test_install_layout_for_ros2_run(colcon_install: Path) -> None:
     assert (share / 'ament_index' / 'resource_index' / 'packages' / 'point_gn_ros').is_file()
     assert (share / 'point_gn_ros' / 'package.xml').is_file()
     assert (share / 'point_gn_ros' / 'config' / 'classifier.yaml').is_file()
+
+
+def _installed_env(install: Path) -> dict[str, str]:
+    """The environment `. install/setup.sh` gives, as `ros2 run` would see it."""
+    out = _run_installed(install, 'env', '-0').stdout
+    return dict(item.split('=', 1) for item in out.split('\0') if '=' in item)
+
+
+def test_installed_classifier_node_answers_over_dds(colcon_install: Path, small_bank_path: Path,
+                                                    tmp_path: Path) -> None:
+    from conftest import load_modelnet_subset
+    from node_testing import (Harness, NodeProcess, assert_same_labels, cloud_msg,
+                              reliable_qos, stamp, stamp_key, to_sensor_frame)
+    from sensor_msgs.msg import PointCloud2
+
+    exe = colcon_install / 'point_gn_ros' / 'lib' / 'point_gn_ros' / 'classifier_node'
+    env = _installed_env(colcon_install)
+    node = NodeProcess({'bank_path': str(small_bank_path), 'qos_reliability': 'reliable'},
+                       tmp_path / 'node.log', command=[str(exe)], base_env=env)
+    harness = Harness('colcon_node_test')
+    try:
+        answers = harness.collect(PointCloud2, '/point_gn_classifier/classifications',
+                                  reliable_qos())
+        pub = harness.node.create_publisher(PointCloud2, 'segmented_objects', reliable_qos())
+        harness.wait_for_subscribers([pub], node, 60.0)
+        xyz, _, _ = load_modelnet_subset('test', 1)
+        rng = np.random.default_rng(0)
+        clouds = [to_sensor_frame(c, rng) for c in xyz[:4]]
+        for i, cloud in enumerate(clouds):
+            pub.publish(cloud_msg(cloud, 'lidar', stamp(100 + i)))
+        assert harness.spin_until(lambda: len(answers) >= 4, 60.0), node.log()
+        by_stamp = {stamp_key(m.header): m for m in answers}
+        from point_gn_ros import decode_classifications
+        labels = [int(decode_classifications(by_stamp[(100 + i, 0)])['class_id'][0])
+                  for i in range(4)]
+        assert_same_labels(labels, small_bank_path, clouds)
+        # the process is the installed script, not this checkout's module
+        assert Path(open(f'/proc/{node.pid}/cmdline', 'rb').read().split(b'\0')[1].decode()
+                    ) == exe
+        assert node.stop() == 0
+    finally:
+        harness.close()
+        if node.proc.poll() is None:
+            node.stop()

@@ -8,6 +8,9 @@ from pathlib import Path
 
 from point_gn_ros.commands.common import add_dataset_args, add_encoder_args
 
+# The paper's GPE width for real scans (ScanObjectNN); 0.4 (the default) for CAD models.
+SCANOBJECTNN_SIGMA = 0.3
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     bank = sub.add_parser('bank', help='build or inspect a feature bank')
@@ -19,7 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_encoder_args(b)
     b.add_argument('-o', '--output', required=True, help='bank file to write (.npz)')
     b.add_argument('--sigma', type=float, default=None,
-                   help='GPE sigma (default 0.4; the paper uses 0.3 for ScanObjectNN)')
+                   help='GPE sigma (default: 0.3 for ScanObjectNN, else 0.4, as in the '
+                        'paper)')
     b.add_argument('--k', type=int, default=None, help='neighbours per centre (default 120)')
     b.add_argument('--yaw-align', action='store_true',
                    help='rotate every cloud into a canonical heading about z before encoding '
@@ -51,6 +55,8 @@ def _build(args: argparse.Namespace) -> int:
     from point_gn_ros.config import EncoderConfig
 
     ds = open_dataset_from_args(args)
+    if args.sigma is None and ds.format == 'scanobjectnn_h5':
+        args.sigma = SCANOBJECTNN_SIGMA
     overrides = {k: v for k, v in (('sigma', args.sigma), ('k', args.k)) if v is not None}
     overrides['yaw_align'] = args.yaw_align
     cfg = EncoderConfig(**overrides)
