@@ -17,7 +17,7 @@ def test_subset_accuracy_far_above_chance() -> None:
                       progress=False)
     pred = Classifier(bank).classify(encode_clouds(test_xyz, enc)).labels
     acc = float((pred == test_y).mean())
-    # Measured 0.0 on this subset; chance is 0.025.
+    # Measured 0.695 on this subset (CV on the 400-object bank: 0.60); chance is 0.025.
     assert acc >= 0.55, acc
     assert bank.meta['selection']['cv_accuracy'] > 0.4
     assert np.isin(pred, np.arange(40)).all()
