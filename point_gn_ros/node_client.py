@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from point_gn_ros.sampling import rotate_z
+
 DEMO_OBJECTS = Path(__file__).resolve().parent / 'data' / 'demo_objects.npz'
 NODE_FQN = '/point_gn_classifier'
 
@@ -49,12 +51,10 @@ def place_in_sensor_frame(xyz: np.ndarray, rng: np.random.Generator, noise: floa
     The node normalises position and scale itself; a yaw-aligned bank (the shipped one)
     also undoes the yaw, any other bank needs the dataset's orientation (yaw 0).
     """
-    c, s = np.cos(yaw), np.sin(yaw)
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)
     scale = rng.uniform(0.4, 1.0)
     offset = np.array([rng.uniform(2.0, 8.0), rng.uniform(-3.0, 3.0), rng.uniform(0.0, 1.0)],
                       dtype=np.float32)
-    out = (xyz * scale) @ rot.T + offset
+    out = rotate_z(xyz * scale, yaw) + offset
     out += rng.normal(0.0, noise, out.shape)
     return out.astype(np.float32)
 

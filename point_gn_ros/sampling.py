@@ -79,6 +79,13 @@ def normalize(xyz: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
+def rotate_z(xyz: np.ndarray, angle: float) -> np.ndarray:
+    """Rotate points by `angle` radians about z: (N, 3) -> (N, 3) float32."""
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return (np.asarray(xyz, dtype=np.float64) @ rot.T).astype(np.float32)
+
+
 def canonical_yaw(xyz: np.ndarray) -> np.ndarray:
     """Rotate a normalised cloud about z so its heading no longer depends on its yaw.
 

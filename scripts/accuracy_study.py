@@ -26,6 +26,7 @@ from point_gn_ros.datasets import open_dataset
 from point_gn_ros.metrics import accuracy_report
 from point_gn_ros.model_selection import DEFAULT_GAMMAS
 from point_gn_ros.recognizer import encode_clouds, make_encoder
+from point_gn_ros.sampling import rotate_z
 
 
 def main() -> None:
@@ -89,13 +90,8 @@ def main() -> None:
         result['shuffle_changed_labels'] = changed
     if args.yawed_test:
         rng = np.random.default_rng(0)
-
-        def yawed(xyz: np.ndarray) -> np.ndarray:
-            a = rng.uniform(0, 2 * np.pi)
-            rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-            return (xyz @ rot.T).astype(np.float32)
-
-        f_yaw = encode_clouds((yawed(test[i][0]) for i in range(len(test))), enc,
+        f_yaw = encode_clouds((rotate_z(test[i][0], rng.uniform(0, 2 * np.pi))
+                               for i in range(len(test))), enc,
                               total=len(test), progress='yawed test')
         pred_y = Classifier(bank).classify(f_yaw, top_k=1).labels
         rep = accuracy_report(test.labels, pred_y, test.class_names)

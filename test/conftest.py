@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
 import os
 from pathlib import Path
 
@@ -33,23 +34,35 @@ def modelnet_dir() -> Path:
     return require_shared(MODELNET)
 
 
-def load_modelnet_subset(split: str, per_class: int, offset: int = 0
-                         ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """First `per_class` objects of each class (after `offset`) of a ModelNet40 split.
+@lru_cache(maxsize=2)
+def load_modelnet_split(split: str) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """A whole ModelNet40 split, read once per session.
 
-    -> xyz (M, 1024, 3) float32, labels (M,) int64, class names. Read with h5py directly
-    so core tests do not depend on the dataset readers.
+    -> xyz (M, 1024, 3) float32, labels (M,) int64, the 40 class names. Read with h5py
+    directly so core tests do not depend on the dataset readers.
     """
     import h5py
 
     root = require_shared(MODELNET)
-    files = sorted(root.glob(f'ply_data_{split}*.h5'))
-    xyz = np.concatenate([h5py.File(f, 'r')['data'][:] for f in files])
-    labels = np.concatenate([h5py.File(f, 'r')['label'][:].reshape(-1) for f in files])
-    names = (root / 'shape_names.txt').read_text().split()
+    xyz, labels = [], []
+    for path in sorted(root.glob(f'ply_data_{split}*.h5')):
+        with h5py.File(path, 'r') as f:
+            xyz.append(f['data'][:].astype(np.float32))
+            labels.append(f['label'][:].reshape(-1).astype(np.int64))
+    names = tuple((root / 'shape_names.txt').read_text().split())
+    return np.concatenate(xyz), np.concatenate(labels), names
+
+
+def load_modelnet_subset(split: str, per_class: int, offset: int = 0
+                         ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """First `per_class` objects of each class (after `offset`) of a ModelNet40 split.
+
+    -> xyz (M, 1024, 3) float32, labels (M,) int64, class names.
+    """
+    xyz, labels, names = load_modelnet_split(split)
     pick = np.concatenate([np.flatnonzero(labels == c)[offset:offset + per_class]
                            for c in range(len(names))])
-    return xyz[pick].astype(np.float32), labels[pick].astype(np.int64), names
+    return xyz[pick], labels[pick], list(names)
 
 
 class ArrayDataset:

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 import contextlib
-from functools import lru_cache
-import json
 import os
 from pathlib import Path
 import random
@@ -21,7 +19,7 @@ import sys
 import time
 from typing import Any
 
-from conftest import MODELNET, require_shared
+from conftest import MODELNET, ArrayDataset, load_modelnet_split
 import numpy as np
 import pytest
 
@@ -39,30 +37,10 @@ TEST_K = 32
 BANK_CLASSES = ('airplane', 'bottle', 'chair', 'guitar', 'lamp', 'table')
 
 
-@lru_cache(maxsize=2)
-def load_split(split: str) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
-    """ModelNet40 split: xyz (M, 1024, 3) float32, labels (M,) int64, the 40 class names."""
-    import h5py
-
-    root = require_shared(MODELNET)
-    xyz, labels, names = [], [], {}
-    for h5 in sorted(root.glob(f'ply_data_{split}*.h5')):
-        with h5py.File(h5, 'r') as f:
-            xyz.append(f['data'][:].astype(np.float32))
-            lab = f['label'][:].reshape(-1).astype(np.int64)
-        labels.append(lab)
-        # ply_data_test0.h5 -> ply_data_test_0_id2file.json ("class/class_0001.npy" each)
-        ids = json.loads((root / f'{h5.stem[:-1]}_{h5.stem[-1]}_id2file.json').read_text())
-        for label, file in zip(lab, ids, strict=True):
-            names[int(label)] = file.split('/')[0]
-    return (np.concatenate(xyz), np.concatenate(labels),
-            tuple(names[i] for i in range(len(names))))
-
-
 def pick(split: str, classes: Sequence[str], per_class: int, offset: int = 0
          ) -> tuple[np.ndarray, np.ndarray]:
     """`per_class` clouds of each named class: xyz (M, 1024, 3), labels (M,) (global ids)."""
-    xyz, labels, names = load_split(split)
+    xyz, labels, names = load_modelnet_split(split)
     idx = np.concatenate([np.flatnonzero(labels == names.index(c))[offset:offset + per_class]
                           for c in classes])
     return xyz[idx], labels[idx]
@@ -74,22 +52,11 @@ def build_tiny_bank(path: Path) -> Path:
     from point_gn_ros.config import EncoderConfig
 
     xyz, labels = pick('train', BANK_CLASSES, 3)
-    all_names = load_split('train')[2]
+    all_names = load_modelnet_split('train')[2]
     local = np.array([BANK_CLASSES.index(all_names[i]) for i in labels], dtype=np.int64)
-
-    class _Dataset:  # the Dataset contract, in memory
-        def __init__(self) -> None:
-            self.labels, self.class_names = local, list(BANK_CLASSES)
-            self.path, self.split, self.format = str(MODELNET), 'train', 'array'
-
-        def __len__(self) -> int:
-            return len(xyz)
-
-        def __getitem__(self, i: int) -> tuple[np.ndarray, int]:
-            return xyz[i], int(local[i])
-
     cfg = EncoderConfig(num_points=TEST_NUM_POINTS, k=TEST_K)
-    bank = build_bank(_Dataset(), cfg, folds=3, progress=False, gammas=(10.0, 100.0, 1000.0),
+    dataset = ArrayDataset(xyz, local, list(BANK_CLASSES), str(MODELNET))
+    bank = build_bank(dataset, cfg, folds=3, progress=False, gammas=(10.0, 100.0, 1000.0),
                       standardize_options=('none',))
     return bank.save(path, dtype='float32')
 

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from point_gn_ros.bag.errors import BagError
+from point_gn_ros.sampling import rotate_z
 
 # Placement ranges for --sensor-frame: object size (largest extent, m) and position (m).
 SIZE_RANGE_M = (0.3, 2.0)
@@ -87,7 +88,5 @@ def place_in_sensor_frame(xyz: np.ndarray, rng: np.random.Generator,
     extent = float(np.ptp(centred, axis=0).max()) or 1.0
     scale = rng.uniform(*SIZE_RANGE_M) / extent
     yaw = np.deg2rad(max_yaw_deg) * rng.uniform(-1.0, 1.0)
-    c, s = np.cos(yaw), np.sin(yaw)
-    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     offset = np.array([rng.uniform(*X_RANGE_M), rng.uniform(*Y_RANGE_M), rng.uniform(*Z_RANGE_M)])
-    return ((centred * scale) @ rot.T + offset).astype(np.float32)
+    return (rotate_z(centred * scale, yaw) + offset).astype(np.float32)

@@ -40,12 +40,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.set_defaults(func=_fewshot)
 
 
-def _yaw(xyz: np.ndarray, angle: float) -> np.ndarray:
-    """Rotate (N, 3) points by `angle` radians about z."""
-    c, s = np.cos(angle), np.sin(angle)
-    return (xyz @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T).astype(np.float32)
-
-
 def _eval(args: argparse.Namespace) -> int:
     import torch
 
@@ -68,8 +62,9 @@ def _eval(args: argparse.Namespace) -> int:
                                cache_dir=Path(args.cache) if args.cache else None)
     else:
         from point_gn_ros.recognizer import encode_clouds
+        from point_gn_ros.sampling import rotate_z
         angles = np.random.default_rng(args.random_yaw).uniform(0, 2 * np.pi, len(ds))
-        feats = encode_clouds((_yaw(ds[i][0], angles[i]) for i in range(len(ds))), enc,
+        feats = encode_clouds((rotate_z(ds[i][0], angles[i]) for i in range(len(ds))), enc,
                               batch_size=args.batch_size, total=len(ds),
                               progress=None if args.json else 'encoding (random yaw)')
     clf = Classifier(bank, args.device, args.unknown_threshold, gamma=args.gamma)
