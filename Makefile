@@ -20,7 +20,7 @@ $(STAMP): requirements.txt requirements-dev.txt setup.py
 
 # The node with the shipped default bank, fed real held-out ModelNet40 objects.
 demo: $(STAMP)
-	$(PY) -m point_gn_ros.demo
+	$(PY) -m point_gn_ros.clients.demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q test

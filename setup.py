@@ -10,7 +10,7 @@ setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
-    package_data={package_name: ['data/*.npz', 'kernels/*.c']},
+    package_data={package_name: ['data/*.npz', 'core/kernels/*.c']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
@@ -26,7 +26,7 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'classifier_node = point_gn_ros.classifier_node:main',
+            'classifier_node = point_gn_ros.node.classifier_node:main',
             'point_gn = point_gn_ros.cli:main',
         ],
     },

@@ -13,10 +13,10 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from point_gn_ros.bank import FeatureBank
-from point_gn_ros.classifier import Classification, Classifier
-from point_gn_ros.config import EncoderConfig
-from point_gn_ros.sampling import ResampleMethod, prepare
+from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.classifier import Classification, Classifier
+from point_gn_ros.core.config import EncoderConfig
+from point_gn_ros.core.sampling import ResampleMethod, prepare
 
 
 class Encoder(Protocol):
@@ -39,11 +39,11 @@ def make_encoder(cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu',
         naive = os.environ.get('POINT_GN_NAIVE', '') == '1'
     if not naive:
         try:
-            from point_gn_ros.encoder import PointGNEncoder
+            from point_gn_ros.core.encoder import PointGNEncoder
             return PointGNEncoder(cfg, device=device, threads=threads)
         except ImportError:
             pass
-    from point_gn_ros.encoder_naive import NaiveEncoder
+    from point_gn_ros.core.encoder_naive import NaiveEncoder
     enc = NaiveEncoder(cfg, device=device)
     enc.warmup = lambda: None  # type: ignore[attr-defined]
     return enc  # type: ignore[return-value]

@@ -19,14 +19,14 @@ import time
 import numpy as np
 import torch
 
-from point_gn_ros.bank_builder import build_bank, encode_dataset
-from point_gn_ros.classifier import Classifier, class_scores
-from point_gn_ros.config import EncoderConfig
+from point_gn_ros.bank.builder import build_bank, encode_dataset
+from point_gn_ros.bank.classifier import Classifier, class_scores
+from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.datasets import open_dataset
-from point_gn_ros.metrics import accuracy_report
-from point_gn_ros.model_selection import DEFAULT_GAMMAS
+from point_gn_ros.evaluation.metrics import accuracy_report
+from point_gn_ros.bank.selection import DEFAULT_GAMMAS
 from point_gn_ros.recognizer import encode_clouds, make_encoder
-from point_gn_ros.sampling import rotate_z
+from point_gn_ros.core.sampling import rotate_z
 
 
 def main() -> None:

@@ -16,8 +16,8 @@ import time
 import numpy as np
 import torch
 
-from point_gn_ros.bank import FeatureBank
-from point_gn_ros.classifier import Classifier
+from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.recognizer import encode_clouds, make_encoder
 

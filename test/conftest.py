@@ -83,7 +83,7 @@ class ArrayDataset:
 @pytest.fixture(scope='session')
 def small_bank_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A bank of 4 ModelNet40 train objects per class (160 entries), built once per session."""
-    from point_gn_ros.bank_builder import build_bank
+    from point_gn_ros.bank.builder import build_bank
 
     xyz, labels, names = load_modelnet_subset('train', 4)
     bank = build_bank(ArrayDataset(xyz, labels, names, str(MODELNET)), folds=2, progress=False)

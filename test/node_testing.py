@@ -48,8 +48,8 @@ def pick(split: str, classes: Sequence[str], per_class: int, offset: int = 0
 
 def build_tiny_bank(path: Path) -> Path:
     """A bank of 3 train clouds for each of BANK_CLASSES, small encoder config (seconds)."""
-    from point_gn_ros.bank_builder import build_bank
-    from point_gn_ros.config import EncoderConfig
+    from point_gn_ros.bank.builder import build_bank
+    from point_gn_ros.core.config import EncoderConfig
 
     xyz, labels = pick('train', BANK_CLASSES, 3)
     all_names = load_modelnet_split('train')[2]
@@ -101,14 +101,14 @@ def stamp_key(header: Any) -> tuple[int, int]:
 
 
 class NodeProcess:
-    """`python -m point_gn_ros.classifier_node` in its own process, output in a log file."""
+    """`python -m point_gn_ros.node.classifier_node` in its own process, output in a log file."""
 
     def __init__(self, params: dict[str, Any], log_path: Path, domain_id: int = DOMAIN_ID,
                  extra_env: dict[str, str] | None = None,
                  params_file: Path | None = None, command: Sequence[str] | None = None,
                  base_env: dict[str, str] | None = None) -> None:
         """command: the executable to run (default: this Python's `-m` module)."""
-        args = list(command or [sys.executable, '-m', 'point_gn_ros.classifier_node'])
+        args = list(command or [sys.executable, '-m', 'point_gn_ros.node.classifier_node'])
         args.append('--ros-args')
         if params_file is not None:
             args += ['--params-file', str(params_file)]

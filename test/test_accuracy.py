@@ -3,8 +3,8 @@
 from conftest import ArrayDataset, load_modelnet_subset
 import numpy as np
 
-from point_gn_ros.bank_builder import build_bank
-from point_gn_ros.classifier import Classifier
+from point_gn_ros.bank.builder import build_bank
+from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.recognizer import encode_clouds, make_encoder
 
 

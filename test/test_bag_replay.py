@@ -43,10 +43,10 @@ def ros_env() -> Iterator[dict[str, str]]:
 
 
 class _Node:
-    """`python -m point_gn_ros.classifier_node` in its own process, output in a log file."""
+    """`python -m point_gn_ros.node.classifier_node` in its own process, output in a log file."""
 
     def __init__(self, name: str, params: dict[str, str], log: Path, env: dict[str, str]) -> None:
-        args = [sys.executable, '-m', 'point_gn_ros.classifier_node', '--ros-args',
+        args = [sys.executable, '-m', 'point_gn_ros.node.classifier_node', '--ros-args',
                 '-r', f'__node:={name}']
         for key, value in params.items():
             args += ['-p', f'{key}:={value}']

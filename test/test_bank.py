@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank import FeatureBank
-from point_gn_ros.config import EncoderConfig
+from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.errors import BankError
-from point_gn_ros.feature_transform import FeatureTransform
+from point_gn_ros.bank.transform import FeatureTransform
 
 
 def _bank(n: int = 30, classes: int = 3, dims: int | None = None) -> FeatureBank:

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros import classifier as clf_mod
-from point_gn_ros.bank import FeatureBank
-from point_gn_ros.classifier import UNKNOWN, Classifier, class_scores
-from point_gn_ros.config import EncoderConfig
-from point_gn_ros.feature_transform import FeatureTransform
+from point_gn_ros.bank import classifier as clf_mod
+from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.classifier import UNKNOWN, Classifier, class_scores
+from point_gn_ros.core.config import EncoderConfig
+from point_gn_ros.bank.transform import FeatureTransform
 
 
 def _bank(n: int = 200, classes: int = 5, gamma: float = 20.0, seed: int = 0,

@@ -13,7 +13,7 @@ import pytest
 
 from point_gn_ros.datasets import SCANOBJECTNN_CLASSES, detect_format, open_dataset
 from point_gn_ros.errors import DatasetError
-from point_gn_ros.sampling import fps_indices
+from point_gn_ros.core.sampling import fps_indices
 
 NAMES = ['cup', 'lamp', 'plant', 'vase']
 

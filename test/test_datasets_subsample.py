@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from point_gn_ros.datasets.subsample import fps_indices_batch, subsample, subsample_batch
-from point_gn_ros.sampling import fps_indices
+from point_gn_ros.core.sampling import fps_indices
 
 
 def test_batched_fps_equals_reference_fps() -> None:

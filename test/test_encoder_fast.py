@@ -1,4 +1,4 @@
-"""Fast encoder (point_gn_ros.encoder) against the oracle (encoder_naive).
+"""Fast encoder (point_gn_ros.core.encoder) against the oracle (encoder_naive).
 
 The oracle is slow (~0.25 s a cloud), so each oracle result is computed once per
 session and shared by the tests that need it.
@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros import kernels
-from point_gn_ros.config import EncoderConfig
-from point_gn_ros.encoder import PointGNEncoder
-from point_gn_ros.encoder_naive import NaiveEncoder, fps, knn
-from point_gn_ros.sampling import prepare
+from point_gn_ros.core import kernels
+from point_gn_ros.core.config import EncoderConfig
+from point_gn_ros.core.encoder import PointGNEncoder
+from point_gn_ros.core.encoder_naive import NaiveEncoder, fps, knn
+from point_gn_ros.core.sampling import prepare
 
 from conftest import require_shared
 

@@ -3,8 +3,8 @@
 import numpy as np
 import torch
 
-from point_gn_ros.fewshot import run_fewshot, sample_episode
-from point_gn_ros.model_selection import calibrate_unknown, select, stratified_folds
+from point_gn_ros.evaluation.fewshot import run_fewshot, sample_episode
+from point_gn_ros.bank.selection import calibrate_unknown, select, stratified_folds
 
 
 def test_folds_are_stratified_disjoint_and_complete() -> None:

@@ -15,7 +15,7 @@ __all__ = ['tiny_bank']  # fixture, imported so that pytest finds it
 
 
 def test_demo_objects_ship_with_the_package() -> None:
-    from point_gn_ros.node_client import DEMO_OBJECTS, load_demo_objects
+    from point_gn_ros.clients.node_client import DEMO_OBJECTS, load_demo_objects
 
     objects = load_demo_objects(DEMO_OBJECTS)        # allow_pickle=False inside
     assert objects.xyz.shape == (40, 1024, 3) and objects.xyz.dtype == np.float32
@@ -27,7 +27,8 @@ def test_demo_objects_ship_with_the_package() -> None:
 
 
 def test_demo_runs_and_stops_the_node_cleanly(tiny_bank: Path) -> None:
-    out = subprocess.run([sys.executable, '-m', 'point_gn_ros.demo', '--bank', str(tiny_bank),
+    out = subprocess.run([sys.executable, '-m', 'point_gn_ros.clients.demo',
+                          '--bank', str(tiny_bank),
                           '--count', '4', '--domain-id', str(DOMAIN_ID), '--timeout', '60'],
                          capture_output=True, text=True, timeout=150, cwd=REPO)
     assert out.returncode == 0, out.stdout + out.stderr
@@ -40,7 +41,7 @@ def test_demo_runs_and_stops_the_node_cleanly(tiny_bank: Path) -> None:
 
 
 def test_bench_node_reports_rates_latency_and_memory(tiny_bank: Path) -> None:
-    from point_gn_ros.node_bench import bench_node, format_rows
+    from point_gn_ros.clients.node_bench import bench_node, format_rows
 
     rows = bench_node(rates=(20,), duration_s=1.5, bank_path=str(tiny_bank),
                       domain_id=DOMAIN_ID)

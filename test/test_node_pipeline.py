@@ -225,7 +225,7 @@ def test_diagnostics(harness: Harness, io: dict) -> None:
 def test_parameters_are_described_and_read_only(harness: Harness, io: dict) -> None:
     from rcl_interfaces.srv import DescribeParameters, GetParameters
 
-    from point_gn_ros.classifier_node import PARAMETERS
+    from point_gn_ros.node.classifier_node import PARAMETERS
 
     def call(srv_type, name: str, request):  # noqa: ANN001, ANN202
         client = harness.node.create_client(srv_type, f'{NODE_FQN}/{name}')

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from point_gn_ros.markers import MarkerTracker, box_line_points, class_colour, object_box
-from point_gn_ros.node_stats import LatencyWindow, NodeStats, RateMeter
-from point_gn_ros.rate_limited_log import RateLimitedLogger, RateLimiter
+from point_gn_ros.node.markers import MarkerTracker, box_line_points, class_colour, object_box
+from point_gn_ros.node.stats import LatencyWindow, NodeStats, RateMeter
+from point_gn_ros.node.rate_limited_log import RateLimitedLogger, RateLimiter
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -116,7 +116,7 @@ def test_box_geometry_and_colours() -> None:
 
 
 def test_reason_keys_are_short_and_bounded() -> None:
-    from point_gn_ros.classifier_node import _reason_key
+    from point_gn_ros.node.classifier_node import _reason_key
     assert _reason_key("missing field 'z' (fields: x, y)") == 'missing field'
     assert _reason_key('data has 100 bytes, expected row_step*height = 120') == 'data has bytes'
     assert (_reason_key("field 'x' (offset 8, 4 bytes) does not fit in point_step 8")
@@ -127,7 +127,7 @@ def test_reason_keys_are_short_and_bounded() -> None:
 def test_config_yaml_lists_every_parameter_with_its_default() -> None:
     yaml = pytest.importorskip('yaml')   # comes with the ROS Python packages
 
-    from point_gn_ros.classifier_node import PARAMETERS
+    from point_gn_ros.node.classifier_node import PARAMETERS
     params = yaml.safe_load((REPO / 'config' / 'classifier.yaml').read_text())
     values = params['point_gn_classifier']['ros__parameters']
     assert set(values) == set(PARAMETERS)

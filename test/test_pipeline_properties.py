@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank import FeatureBank
+from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.recognizer import Recognizer, encode_clouds, make_encoder
-from point_gn_ros.sampling import prepare, rotate_z
+from point_gn_ros.core.sampling import prepare, rotate_z
 
 
 @pytest.fixture(scope='module')
@@ -88,7 +88,7 @@ def test_yaw_aligned_bank_classifies_any_heading_alike(encoder, test_clouds,
 
     from conftest import ArrayDataset
 
-    from point_gn_ros.bank_builder import build_bank
+    from point_gn_ros.bank.builder import build_bank
     from point_gn_ros.recognizer import make_encoder
 
     xyz, labels, names = load_modelnet_subset('train', 3)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.encoder_naive import fps as oracle_fps
-from point_gn_ros.sampling import (FPS_MAX_INPUT, canonical_yaw, fps_indices, normalize, prepare,
-                                   resample)
+from point_gn_ros.core.encoder_naive import fps as oracle_fps
+from point_gn_ros.core.sampling import (FPS_MAX_INPUT, canonical_yaw, fps_indices, normalize,
+                                        prepare, resample)
 
 
 def _cloud(n: int, seed: int = 0) -> np.ndarray:

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from point_gn_ros.work_queue import WorkQueue
+from point_gn_ros.node.work_queue import WorkQueue
 
 
 def test_drop_oldest_keeps_the_freshest() -> None:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from point_gn_ros.bag.errors import BagError
-from point_gn_ros.sampling import rotate_z
+from point_gn_ros.core.sampling import rotate_z
 
 # Placement ranges for --sensor-frame: object size (largest extent, m) and position (m).
 SIZE_RANGE_M = (0.3, 2.0)

@@ -54,7 +54,7 @@ def _percentiles(values_ms: np.ndarray) -> dict[str, float | None]:
 
 def build_report(contents: BagContents, result: RunResult) -> dict[str, Any]:
     """Accuracy over answered objects, delivery counts, latency and throughput."""
-    from point_gn_ros.metrics import accuracy_report
+    from point_gn_ros.evaluation.metrics import accuracy_report
 
     sent_msgs = contents.messages[:result.sent]
     rows = []
@@ -111,7 +111,7 @@ def build_report(contents: BagContents, result: RunResult) -> dict[str, Any]:
 
 def format_markdown(report: dict[str, Any], class_names: list[str]) -> str:
     """Headline table (delivery, latency, throughput) followed by the accuracy tables."""
-    from point_gn_ros.metrics import format_report
+    from point_gn_ros.evaluation.metrics import format_report
 
     lat = report['latency_ms']
 
@@ -166,7 +166,7 @@ def write_outputs(report: dict[str, Any], class_names: list[str], *,
 
 def write_pngs(report: dict[str, Any], class_names: list[str], prefix: str) -> list[Path]:
     """<prefix>_confusion.png and, when latencies were measured, <prefix>_latency.png."""
-    from point_gn_ros.metrics import plot_confusion
+    from point_gn_ros.evaluation.metrics import plot_confusion
 
     out = [plot_confusion(np.asarray(report['confusion']), class_names,
                           f'{prefix}_confusion.png',

@@ -50,9 +50,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _build(args: argparse.Namespace) -> int:
-    from point_gn_ros.bank_builder import build_bank
+    from point_gn_ros.bank.builder import build_bank
     from point_gn_ros.commands.common import open_dataset_from_args
-    from point_gn_ros.config import EncoderConfig
+    from point_gn_ros.core.config import EncoderConfig
 
     ds = open_dataset_from_args(args)
     if args.sigma is None and ds.format == 'scanobjectnn_h5':
@@ -79,7 +79,7 @@ def _build(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from point_gn_ros.bank import FeatureBank
+    from point_gn_ros.bank.store import FeatureBank
 
     bank = FeatureBank.load(args.bank)
     if args.json:

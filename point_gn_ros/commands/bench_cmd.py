@@ -47,7 +47,7 @@ def synthetic_clouds(count: int, n: int, seed: int = 0):
     """Prepared clouds sampled from surfaces (spheres, boxes, cylinders): (count, n, 3)."""
     import numpy as np
 
-    from point_gn_ros.sampling import normalize
+    from point_gn_ros.core.sampling import normalize
 
     rng = np.random.default_rng(seed)
     out = np.empty((count, n, 3), np.float32)
@@ -72,10 +72,10 @@ def encoder_rows(quick: bool, repeats: int, device: str, threads: int | None) ->
     """Fast encoder at batch 1, 16, 64 against the naive oracle, plus warm-up cost."""
     import torch
 
-    from point_gn_ros import kernels
-    from point_gn_ros.config import EncoderConfig
-    from point_gn_ros.encoder import PointGNEncoder
-    from point_gn_ros.encoder_naive import NaiveEncoder
+    from point_gn_ros.core import kernels
+    from point_gn_ros.core.config import EncoderConfig
+    from point_gn_ros.core.encoder import PointGNEncoder
+    from point_gn_ros.core.encoder_naive import NaiveEncoder
 
     cfg = EncoderConfig()
     rows: list[Row] = []
@@ -128,7 +128,7 @@ def resample_rows(quick: bool, repeats: int) -> list[Row]:
     """sampling.prepare (FPS resample + normalise) on inputs of 1k to 1M points."""
     import numpy as np
 
-    from point_gn_ros.sampling import prepare
+    from point_gn_ros.core.sampling import prepare
 
     rows: list[Row] = []
     rng = np.random.default_rng(1)
@@ -145,15 +145,15 @@ def resample_rows(quick: bool, repeats: int) -> list[Row]:
 def classifier_rows(quick: bool, repeats: int, device: str) -> list[Row]:
     """Classification time per query against random banks of 1k, 10k, 100k entries."""
     try:
-        from point_gn_ros.bank import FeatureBank
-        from point_gn_ros.classifier import Classifier
-        from point_gn_ros.feature_transform import FeatureTransform
+        from point_gn_ros.bank.store import FeatureBank
+        from point_gn_ros.bank.classifier import Classifier
+        from point_gn_ros.bank.transform import FeatureTransform
     except ImportError as exc:  # HOOK: classifier not available in this checkout
         return [dict(section='classifier', what='classifier', value=float('nan'), unit='ms',
                      note=f'skipped: {exc}')]
     import torch
 
-    from point_gn_ros.config import EncoderConfig
+    from point_gn_ros.core.config import EncoderConfig
 
     cfg = EncoderConfig()
     rows: list[Row] = []
@@ -192,8 +192,8 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
 
     import numpy as np
 
-    from point_gn_ros import kernels
-    from point_gn_ros.encoder import PointGNEncoder
+    from point_gn_ros.core import kernels
+    from point_gn_ros.core.encoder import PointGNEncoder
 
     lib = kernels.load()
     try:
@@ -226,7 +226,7 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
 def node_rows(quick: bool, repeats: int) -> list[Row]:
     """End-to-end node rows through real DDS: throughput, latency, peak RSS."""
     del repeats  # each input rate runs for a fixed duration instead
-    from point_gn_ros.node_bench import bench_rows
+    from point_gn_ros.clients.node_bench import bench_rows
     return bench_rows(quick)
 
 
@@ -248,7 +248,7 @@ def _bench(args: argparse.Namespace) -> int:
 
     import torch
 
-    from point_gn_ros.encoder import default_threads
+    from point_gn_ros.core.encoder import default_threads
 
     if args.profile:
         import os

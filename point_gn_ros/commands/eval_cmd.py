@@ -43,12 +43,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _eval(args: argparse.Namespace) -> int:
     import torch
 
-    from point_gn_ros.bank import FeatureBank
-    from point_gn_ros.bank_builder import encode_dataset
-    from point_gn_ros.classifier import Classifier
+    from point_gn_ros.bank.store import FeatureBank
+    from point_gn_ros.bank.builder import encode_dataset
+    from point_gn_ros.bank.classifier import Classifier
     from point_gn_ros.commands.common import open_dataset_from_args
     from point_gn_ros.errors import DatasetError
-    from point_gn_ros.metrics import accuracy_report, format_report, plot_confusion
+    from point_gn_ros.evaluation.metrics import accuracy_report, format_report, plot_confusion
     from point_gn_ros.recognizer import make_encoder
 
     bank = FeatureBank.load(args.bank)
@@ -62,7 +62,7 @@ def _eval(args: argparse.Namespace) -> int:
                                cache_dir=Path(args.cache) if args.cache else None)
     else:
         from point_gn_ros.recognizer import encode_clouds
-        from point_gn_ros.sampling import rotate_z
+        from point_gn_ros.core.sampling import rotate_z
         angles = np.random.default_rng(args.random_yaw).uniform(0, 2 * np.pi, len(ds))
         feats = encode_clouds((rotate_z(ds[i][0], angles[i]) for i in range(len(ds))), enc,
                               batch_size=args.batch_size, total=len(ds),
@@ -87,8 +87,8 @@ def _fewshot(args: argparse.Namespace) -> int:
     import torch
 
     from point_gn_ros.commands.common import open_dataset_from_args
-    from point_gn_ros.config import EncoderConfig
-    from point_gn_ros.fewshot import PAPER_SETTINGS, run_fewshot
+    from point_gn_ros.core.config import EncoderConfig
+    from point_gn_ros.evaluation.fewshot import PAPER_SETTINGS, run_fewshot
     from point_gn_ros.recognizer import encode_clouds, make_encoder
 
     ds = open_dataset_from_args(args)

@@ -6,7 +6,7 @@ from typing import Literal
 
 import numpy as np
 
-from point_gn_ros.sampling import FPS_MAX_INPUT, fps_indices, resample
+from point_gn_ros.core.sampling import FPS_MAX_INPUT, fps_indices, resample
 
 Subsample = Literal['first', 'fps']
 SUBSAMPLE_METHODS = ('first', 'fps')

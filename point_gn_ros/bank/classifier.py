@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from point_gn_ros.bank import FeatureBank
+from point_gn_ros.bank.store import FeatureBank
 
 UNKNOWN = -1
 # Upper bound on queries x bank entries held at once (float32 similarity block).

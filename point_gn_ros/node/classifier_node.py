@@ -20,7 +20,7 @@ encoder is.
 
 from __future__ import annotations
 
-import point_gn_ros._quiet_interrupt  # noqa: F401 - first: before the slow imports
+import point_gn_ros.node._quiet_interrupt  # noqa: F401 - first: before the slow imports
 
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -48,10 +48,10 @@ from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 from point_gn_ros.errors import BankError, DecodeError, PointGNError
-from point_gn_ros.markers import MarkerTracker, object_box
-from point_gn_ros.node_stats import NodeStats
-from point_gn_ros.rate_limited_log import RateLimitedLogger
-from point_gn_ros.work_queue import QueueItem, WorkQueue
+from point_gn_ros.node.markers import MarkerTracker, object_box
+from point_gn_ros.node.stats import NodeStats
+from point_gn_ros.node.rate_limited_log import RateLimitedLogger
+from point_gn_ros.node.work_queue import QueueItem, WorkQueue
 
 NODE_NAME = 'point_gn_classifier'
 REJECT_TOO_FEW = 'too few points'
@@ -231,7 +231,7 @@ class ClassifierNode(Node):
         return Settings(**values)
 
     def _make_recognizer(self) -> Any:
-        from point_gn_ros.bank import FeatureBank
+        from point_gn_ros.bank.store import FeatureBank
         from point_gn_ros.recognizer import Recognizer, make_encoder
 
         s = self.settings

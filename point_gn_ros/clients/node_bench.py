@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from point_gn_ros.node_client import (DEMO_OBJECTS, Client, NodeLauncher, load_demo_objects,
-                                      percentiles_ms, place_in_sensor_frame)
+from point_gn_ros.clients.node_client import (DEMO_OBJECTS, Client, NodeLauncher,
+                                              load_demo_objects, percentiles_ms,
+                                              place_in_sensor_frame)
 
 TOPIC = 'bench_objects'
 FRAME = 'bench_sensor'
@@ -91,7 +92,7 @@ def bench_node(rates: Sequence[float] = (10, 30, 100), duration_s: float = 10.0,
     of the node process after that phase; cumulative), plus node_startup_s and the node
     parameters used. Raises RuntimeError if the node does not start.
     """
-    from point_gn_ros.demo import _bank_num_points
+    from point_gn_ros.clients.demo import _bank_num_points
 
     objects = load_demo_objects(objects_path)
     rng = np.random.default_rng(0)

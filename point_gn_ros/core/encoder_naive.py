@@ -13,7 +13,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from point_gn_ros.config import EncoderConfig
+from point_gn_ros.core.config import EncoderConfig
 
 
 def gpe_centres(dim: int, device: torch.device | str = 'cpu') -> torch.Tensor:
@@ -103,7 +103,7 @@ class NaiveEncoder:
     """Reference encoder over a batch, one cloud at a time.
 
     Input clouds must already be resampled to cfg.num_points and normalised
-    (see point_gn_ros.sampling).
+    (see point_gn_ros.core.sampling).
     """
 
     def __init__(self, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu') -> None:

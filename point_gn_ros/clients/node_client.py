@@ -1,6 +1,6 @@
 """Drive the classifier node from outside: start it as a process, feed it clouds, time answers.
 
-Shared by the demo (`python -m point_gn_ros.demo`) and the node benchmark
+Shared by the demo (`python -m point_gn_ros.clients.demo`) and the node benchmark
 (`node_bench.bench_node`). The node runs in its own process, exactly as deployed; this
 side is an ordinary rclpy participant on the same ROS domain.
 """
@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from point_gn_ros.sampling import rotate_z
+from point_gn_ros.core.sampling import rotate_z
 
-DEMO_OBJECTS = Path(__file__).resolve().parent / 'data' / 'demo_objects.npz'
+DEMO_OBJECTS = Path(__file__).resolve().parents[1] / 'data' / 'demo_objects.npz'
 NODE_FQN = '/point_gn_classifier'
 
 
@@ -60,11 +60,11 @@ def place_in_sensor_frame(xyz: np.ndarray, rng: np.random.Generator, noise: floa
 
 
 class NodeLauncher:
-    """The classifier node in a child process (`python -m point_gn_ros.classifier_node`)."""
+    """The classifier node in a child process (`python -m point_gn_ros.node.classifier_node`)."""
 
     def __init__(self, params: dict[str, Any], domain_id: int, log_path: Path | None = None,
                  passthrough: bool = False) -> None:
-        args = [sys.executable, '-m', 'point_gn_ros.classifier_node', '--ros-args']
+        args = [sys.executable, '-m', 'point_gn_ros.node.classifier_node', '--ros-args']
         for key, value in params.items():
             args += ['-p', f'{key}:={_param_text(value)}']
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')

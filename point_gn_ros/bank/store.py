@@ -23,9 +23,9 @@ import zipfile
 import numpy as np
 import torch
 
-from point_gn_ros.config import ENCODER_VERSION, EncoderConfig
+from point_gn_ros.core.config import ENCODER_VERSION, EncoderConfig
 from point_gn_ros.errors import BankError
-from point_gn_ros.feature_transform import FeatureTransform
+from point_gn_ros.bank.transform import FeatureTransform
 
 FORMAT_VERSION = 1
 DEFAULT_BANK_NAME = 'modelnet40_default.npz'
@@ -38,7 +38,7 @@ def default_bank_path() -> Path:
     Found next to the module (pip / editable install), else in the ament share
     directory (colcon install).
     """
-    here = Path(__file__).resolve().parent / 'data' / DEFAULT_BANK_NAME
+    here = Path(__file__).resolve().parents[1] / 'data' / DEFAULT_BANK_NAME
     if here.is_file():
         return here
     try:

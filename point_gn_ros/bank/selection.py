@@ -11,8 +11,8 @@ import itertools
 import numpy as np
 import torch
 
-from point_gn_ros.classifier import votes_from_similarity
-from point_gn_ros.feature_transform import FeatureTransform, Standardize
+from point_gn_ros.bank.classifier import votes_from_similarity
+from point_gn_ros.bank.transform import FeatureTransform, Standardize
 
 DEFAULT_GAMMAS = tuple(float(g) for g in np.geomspace(5, 5000, 19).round(1))
 

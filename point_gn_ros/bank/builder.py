@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from point_gn_ros.bank import FeatureBank
-from point_gn_ros.config import EncoderConfig
-from point_gn_ros.feature_transform import FeatureTransform, Standardize
-from point_gn_ros.model_selection import DEFAULT_GAMMAS, calibrate_unknown, select
+from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.core.config import EncoderConfig
+from point_gn_ros.bank.transform import FeatureTransform, Standardize
+from point_gn_ros.bank.selection import DEFAULT_GAMMAS, calibrate_unknown, select
 from point_gn_ros.recognizer import Encoder, encode_clouds, make_encoder
 
 
@@ -23,7 +23,7 @@ def encode_dataset(dataset, encoder: Encoder, batch_size: int = 64, progress: bo
 
     cache_dir: reuse raw features keyed by dataset, split, encoder version and config.
     """
-    from point_gn_ros.config import ENCODER_VERSION
+    from point_gn_ros.core.config import ENCODER_VERSION
     cache = None
     if cache_dir is not None:
         key = hashlib.sha1(repr((str(Path(dataset.path).resolve()), dataset.split, len(dataset),

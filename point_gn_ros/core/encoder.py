@@ -26,9 +26,9 @@ import numpy as np
 import torch
 from torch.nn import functional
 
-from point_gn_ros import kernels
-from point_gn_ros.config import EncoderConfig
-from point_gn_ros.encoder_naive import gpe, gpe_centres
+from point_gn_ros.core import kernels
+from point_gn_ros.core.config import EncoderConfig
+from point_gn_ros.core.encoder_naive import gpe, gpe_centres
 
 Backend = Literal['auto', 'kernel', 'torch']
 _log = logging.getLogger(__name__)

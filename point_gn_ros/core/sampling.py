@@ -15,7 +15,7 @@ FPS_MAX_INPUT = 16384
 
 def _compiled_fps():
     """kernels.fps_from when the compiled kernels load, else None (numpy loop below)."""
-    from point_gn_ros import kernels
+    from point_gn_ros.core import kernels
     return kernels.fps_from if kernels.load() is not None else None
 
 
@@ -30,7 +30,7 @@ def fps_indices(xyz: np.ndarray, m: int) -> np.ndarray:
     cur = int(np.argmax(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]))
     fast = _compiled_fps() if xyz.dtype == np.float32 and 1 <= m <= xyz.shape[0] else None
     if fast is not None:
-        # Same loop compiled (point_gn_ros.kernels): identical indices, ~30x faster.
+        # Same loop compiled (point_gn_ros.core.kernels): identical indices, ~30x faster.
         return fast(xyz, m, cur)
     min_d = np.full(xyz.shape[0], np.inf, dtype=np.float32)
     idx = np.empty(m, dtype=np.int64)

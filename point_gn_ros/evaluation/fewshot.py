@@ -7,9 +7,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from point_gn_ros.classifier import class_scores
-from point_gn_ros.feature_transform import FeatureTransform
-from point_gn_ros.model_selection import DEFAULT_GAMMAS
+from point_gn_ros.bank.classifier import class_scores
+from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.selection import DEFAULT_GAMMAS
 
 PAPER_SETTINGS = ((5, 10), (5, 20), (10, 10), (10, 20))
 

@@ -17,16 +17,17 @@ import time
 
 import numpy as np
 
-from point_gn_ros.node_client import (DEMO_OBJECTS, Client, NodeLauncher, load_demo_objects,
-                                      percentiles_ms, place_in_sensor_frame)
+from point_gn_ros.clients.node_client import (DEMO_OBJECTS, Client, NodeLauncher,
+                                              load_demo_objects, percentiles_ms,
+                                              place_in_sensor_frame)
 
 TOPIC = 'demo_objects'
 FRAME = 'demo_sensor'
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog='python -m point_gn_ros.demo', description=__doc__.split(
-        '\n\n')[0])
+    p = argparse.ArgumentParser(prog='python -m point_gn_ros.clients.demo',
+                                description=__doc__.split('\n\n')[0])
     p.add_argument('--bank', default='', help="feature bank .npz ('' = the shipped default)")
     p.add_argument('--objects', default=str(DEMO_OBJECTS), help='demo objects .npz')
     p.add_argument('--count', type=int, default=0, help='objects to send (0 = all)')
@@ -49,7 +50,7 @@ def _bank_num_points(bank: str) -> int:
     import json
     from pathlib import Path
 
-    from point_gn_ros.bank import default_bank_path
+    from point_gn_ros.bank.store import default_bank_path
     path = Path(bank) if bank else default_bank_path()
     try:
         with np.load(path, allow_pickle=False) as z:

@@ -1,0 +1,1 @@
+"""The feature bank: file, transform, building, CV choice of knobs, classification. No ROS."""

@@ -1,0 +1,1 @@
+"""Accuracy metrics and few-shot episodes over datasets. No ROS."""
