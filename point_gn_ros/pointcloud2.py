@@ -46,6 +46,10 @@ _DATATYPE_NAMES = {
 }
 
 DEFAULT_MAX_POINTS = 5_000_000
+# Sizes, steps, offsets and counts must stay below this: numpy dtypes and strides are C ints,
+# and the ~/classifications segment_id is an INT32. Checked here, at the boundary, so nothing
+# downstream can overflow (sensor_msgs declares them uint32, up to 2**32 - 1).
+INT32_LIMIT = 2**31
 _XYZ = ('x', 'y', 'z')
 _MSG_ATTRS = ('height', 'width', 'fields', 'is_bigendian', 'point_step', 'row_step', 'data')
 
@@ -75,11 +79,15 @@ class DecodedCloud:
 # decoding
 
 
-def _as_int(value: Any, what: str) -> int:
+def _as_int(value: Any, what: str, bounded: bool = True) -> int:
+    """The value as an int (``bounded``: in [-2**31, 2**31), a C int), else DecodeError."""
     try:
-        return operator.index(value)
+        out = operator.index(value)
     except TypeError:
         raise DecodeError(f'{what} is not an integer ({value!r})') from None
+    if bounded and not -INT32_LIMIT <= out < INT32_LIMIT:
+        raise DecodeError(f'{what} {out} is out of range (must be below 2**31)')
+    return out
 
 
 def _byte_buffer(data: Any) -> np.ndarray:
@@ -132,10 +140,11 @@ def _index_fields(fields: Any) -> dict[str, list[_Field]]:
             raise DecodeError(f'malformed PointField ({exc})') from None
         if not isinstance(name, str):
             continue  # cannot be requested by name; ignore like any other unused field
+        # Range-checked only once requested: an unused field's values cannot hurt.
         out.setdefault(name, []).append(_Field(
-            name, _as_int(offset, f'field {name!r} offset'),
-            _as_int(datatype, f'field {name!r} datatype'),
-            _as_int(count, f'field {name!r} count')))
+            name, _as_int(offset, f'field {name!r} offset', bounded=False),
+            _as_int(datatype, f'field {name!r} datatype', bounded=False),
+            _as_int(count, f'field {name!r} count', bounded=False)))
     return out
 
 
@@ -174,6 +183,8 @@ def _structured_view(msg: Any, names: Sequence[str], *, max_points: int,
         if len(found) > 1:
             raise DecodeError(f'field {name!r} appears {len(found)} times')
         f = found[0]
+        _as_int(f.offset, f'field {name!r} offset')
+        _as_int(f.count, f'field {name!r} count')
         base = POINTFIELD_DTYPES.get(f.datatype)
         if base is None:
             raise DecodeError(f'field {name!r} has unsupported datatype {f.datatype}')
@@ -263,7 +274,8 @@ def split_segments(decoded: DecodedCloud, field_name: str, *,
     ``field_name`` must have been requested via ``decode_xyz(..., extra_fields=[field_name])``.
     Float fields are accepted when every value is a finite integer. ``skip_ids`` drops e.g. a
     background label. Returns [(segment_id, xyz (M_i, 3) float32)] sorted by id; each segment
-    keeps the original point order.
+    keeps the original point order. Raises DecodeError for non-integer ids and for ids (not
+    skipped) outside the int32 range, which the ``~/classifications`` segment_id cannot carry.
     """
     if field_name not in decoded.fields:
         raise DecodeError(f'segment field {field_name!r} was not decoded '
@@ -299,8 +311,12 @@ def split_segments(decoded: DecodedCloud, field_name: str, *,
     out = []
     for start, chunk in zip(starts, np.split(xyz_sorted, starts[1:]), strict=True):
         seg_id = int(sorted_ids[start])
-        if seg_id not in skip:
-            out.append((seg_id, chunk))
+        if seg_id in skip:
+            continue
+        if not -INT32_LIMIT <= seg_id < INT32_LIMIT:  # the answer's segment_id is an INT32
+            raise DecodeError(f'segment field {field_name!r} holds id {seg_id}, outside the '
+                              'int32 range of segment_id')
+        out.append((seg_id, chunk))
     return out
 
 

@@ -253,6 +253,13 @@ MALFORMED = {
     'field without offset': (lambda m: m.fields.__setitem__(0, SimpleNamespace(name='x')),
                              r'malformed PointField'),
     'no data attribute': (lambda m: delattr(m, 'data'), r'not a PointCloud2'),
+    # uint32 values past a C int: refused at the boundary, never a ValueError/OverflowError.
+    'point_step 2**31': (lambda m: setattr(m, 'point_step', 2**31), r'point_step 2147483648 is'),
+    'row_step 2**32-1': (lambda m: setattr(m, 'row_step', 2**32 - 1), r'row_step .* out of range'),
+    'width 2**31': (lambda m: setattr(m, 'width', 2**31), r'width .* out of range'),
+    'height 2**31': (lambda m: setattr(m, 'height', 2**31), r'height .* out of range'),
+    'offset 2**31': (lambda m: setattr(_field(m, 'x'), 'offset', 2**31), r"'x' offset .* range"),
+    'count 2**32-1': (lambda m: setattr(_field(m, 'y'), 'count', 2**32 - 1), r"'y' count"),
 }
 
 
@@ -263,6 +270,18 @@ def test_malformed_raises_decode_error(case: str) -> None:
     mutate(msg)
     with pytest.raises(DecodeError, match=reason):
         decode_xyz(msg)
+
+
+@pytest.mark.parametrize('attr', ['point_step', 'row_step'])
+def test_empty_cloud_with_huge_step_is_a_decode_error(attr: str) -> None:
+    """The campaign's escape: an empty cloud, point_step >= 2**31, allow_empty (the node)."""
+    msg = _valid()
+    msg.width, msg.data = 0, b''
+    setattr(msg, attr, 2**31 + 5)
+    with pytest.raises(DecodeError, match=f'{attr} 2147483653 is out of range'):
+        decode_xyz(msg, allow_empty=True)
+    with pytest.raises(DecodeError, match='out of range'):
+        decode_classifications(msg)
 
 
 def test_missing_extra_field_and_max_points() -> None:
@@ -310,7 +329,14 @@ def test_split_segments_skip_ids_negative_and_large() -> None:
     segs = split_segments(_segmented(ids), 'seg', skip_ids=[-1])
     assert [s for s, _ in segs] == [3, 7]
     big = np.array([4_000_000_000] * 6 + [1] * 6)
-    assert [s for s, _ in split_segments(_segmented(big, UINT32), 'seg')] == [1, 4_000_000_000]
+    # segment_id is an INT32 in the answer: an id beyond it is refused at the boundary ...
+    with pytest.raises(DecodeError, match='id 4000000000, outside the int32 range'):
+        split_segments(_segmented(big, UINT32), 'seg')
+    # ... unless it is skipped (e.g. a UINT32 'no label' value).
+    segs = split_segments(_segmented(big, UINT32), 'seg', skip_ids=[4_000_000_000])
+    assert [s for s, _ in segs] == [1]
+    edge = np.array([2**31 - 1] * 6 + [-2**31] * 6)
+    assert [s for s, _ in split_segments(_segmented(edge, INT32), 'seg')] == [-2**31, 2**31 - 1]
 
 
 def test_split_segments_after_nan_removal() -> None:
@@ -332,8 +358,10 @@ def test_split_segments_after_nan_removal() -> None:
 ], ids=['int8', 'int16', 'int32-wide', 'uint64', 'bool'])
 def test_split_segments_id_ranges(ids: np.ndarray) -> None:
     decoded = DecodedCloud(xyz=XYZ, fields={'seg': ids})
-    segs = split_segments(decoded, 'seg')
-    assert [s for s, _ in segs] == sorted({int(v) for v in ids})
+    # ids beyond int32 (uint64 case) must be skipped to be accepted; the sort still sees them
+    wide = {int(v) for v in ids if not -2**31 <= int(v) < 2**31}
+    segs = split_segments(decoded, 'seg', skip_ids=wide)
+    assert [s for s, _ in segs] == sorted({int(v) for v in ids} - wide)
     for seg_id, xyz in segs:
         np.testing.assert_array_equal(xyz, XYZ[ids == seg_id])
 

@@ -48,11 +48,17 @@ class RejectedError(Exception):
     """The reference decoder says the message is malformed."""
 
 
-def reference_decode(msg: SimpleNamespace, extras: list[str], max_points: int
-                     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Decode by the written rules, one point at a time. Raises RejectedError when malformed."""
+def reference_decode(msg: SimpleNamespace, extras: list[str], max_points: int,
+                     allow_empty: bool = False) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Decode by the written rules, one point at a time. Raises RejectedError when malformed.
+
+    Every integer (sizes, steps, offsets, counts) must be below 2**31 (a C int); an empty
+    grid or an all-non-finite cloud is valid (0 points) only with ``allow_empty``.
+    """
     h, w, step, row = msg.height, msg.width, msg.point_step, msg.row_step
-    if min(h, w, step, row) < 0 or h * w == 0 or h * w > max_points:
+    if min(h, w, step, row) < 0 or max(h, w, step, row) >= 2**31 or h * w > max_points:
+        raise RejectedError
+    if h * w == 0 and not allow_empty:
         raise RejectedError
     layout = {}
     for name in dict.fromkeys(['x', 'y', 'z', *extras]):
@@ -61,6 +67,8 @@ def reference_decode(msg: SimpleNamespace, extras: list[str], max_points: int
             raise RejectedError
         f = found[0]
         if f.datatype not in _FMT or f.count < 0 or f.offset < 0:
+            raise RejectedError
+        if max(f.offset, f.count) >= 2**31:
             raise RejectedError
         if f.offset + _SIZE[f.datatype] * max(f.count, 1) > step:
             raise RejectedError
@@ -85,7 +93,7 @@ def reference_decode(msg: SimpleNamespace, extras: list[str], max_points: int
         xyz = np.array([values['x'], values['y'], values['z']], dtype=np.float64)
         xyz = xyz.T.astype(np.float32)
     keep = np.isfinite(xyz).all(axis=1)
-    if not keep.any():
+    if not keep.any() and not allow_empty:
         raise RejectedError
     fields = {name: np.array(values[name], dtype=_NP[layout[name].datatype])[keep]
               for name in extras}
@@ -168,7 +176,7 @@ def _corrupt(draw: st.DrawFn, msg: SimpleNamespace) -> None:
     """Apply one random corruption in place."""
     kind = draw(st.sampled_from(['truncate', 'extend', 'row_step', 'point_step', 'remove',
                                  'datatype', 'offset', 'count', 'dims', 'duplicate', 'endian',
-                                 'bad_data']))
+                                 'bad_data', 'huge', 'empty_huge']))
     try:
         data = bytes(msg.data)
     except (TypeError, ValueError):  # an earlier 'bad_data' corruption
@@ -199,6 +207,19 @@ def _corrupt(draw: st.DrawFn, msg: SimpleNamespace) -> None:
         msg.fields = [*msg.fields, SimpleNamespace(**vars(f))]
     elif kind == 'endian':
         msg.is_bigendian = not msg.is_bigendian
+    elif kind in ('huge', 'empty_huge'):
+        # uint32 values past a C int (what a real PointCloud2 can carry), one attribute at a
+        # time; 'empty_huge' also empties the grid (the decoder's former ValueError escape).
+        if kind == 'empty_huge':
+            msg.width, msg.data = 0, b''
+        big = draw(st.sampled_from([2**31 - 1, 2**31, 2**31 + 7, 2**32 - 1]))
+        target = draw(st.sampled_from(['point_step', 'row_step', 'width', 'height', 'offset',
+                                       'count']))
+        if target in ('offset', 'count'):
+            if f is not None:
+                setattr(f, target, big)
+        else:
+            setattr(msg, target, big)
     elif kind == 'bad_data':
         msg.data = draw(st.sampled_from([[*data, 256], [-1, *data], 'abc', None, [0.5] * 4]))
 
@@ -216,15 +237,17 @@ def corrupted_clouds(draw: st.DrawFn) -> tuple[SimpleNamespace, list[str]]:
 # ------------------------------------------------------------------------------ properties
 
 
-def check_against_reference(msg: SimpleNamespace, extras: list[str], max_points: int) -> str:
+def check_against_reference(msg: SimpleNamespace, extras: list[str], max_points: int,
+                            allow_empty: bool = False) -> str:
     """Assert decode_xyz agrees with the reference; returns 'decoded' or 'rejected: <word>'."""
     try:
-        expect_xyz, expect_fields = reference_decode(msg, extras, max_points)
+        expect_xyz, expect_fields = reference_decode(msg, extras, max_points, allow_empty)
     except RejectedError:
         with pytest.raises(DecodeError) as err:
-            decode_xyz(msg, extras, max_points=max_points)
+            decode_xyz(msg, extras, max_points=max_points, allow_empty=allow_empty)
         return f'rejected: {str(err.value).split(" ")[0]}'  # coarse reason, for statistics
-    out = decode_xyz(msg, extras, max_points=max_points)  # any exception here fails the test
+    # any exception here fails the test
+    out = decode_xyz(msg, extras, max_points=max_points, allow_empty=allow_empty)
     np.testing.assert_array_equal(out.xyz, expect_xyz)
     assert out.xyz.dtype == np.float32 and out.xyz.shape == expect_xyz.shape
     assert out.n_dropped_nonfinite == msg.height * msg.width - len(expect_xyz)
@@ -261,10 +284,12 @@ def test_fuzz_valid_layouts_decode_exactly(case: tuple, tiny_limit: bool, wire: 
 
 
 @CI
-@given(corrupted_clouds())
-def test_fuzz_corrupted_messages_raise_decode_error_only(case: tuple) -> None:
+@given(corrupted_clouds(), st.booleans())
+def test_fuzz_corrupted_messages_raise_decode_error_only(case: tuple, allow_empty: bool
+                                                         ) -> None:
     msg, extras = case
-    event(check_against_reference(msg, extras, MAX_POINTS))
+    # allow_empty is what the node passes: empty grids then go further into the checks.
+    event(check_against_reference(msg, extras, MAX_POINTS, allow_empty))
 
 
 def test_fuzz_reference_accepts_and_rejects() -> None:
@@ -322,7 +347,12 @@ def test_fuzz_split_segments_matches_naive(dtype: str, n: int, seed: int, spread
         ids = (rng.integers(info.min, info.max, n, endpoint=True, dtype=dt) if spread == 0
                else base + rng.integers(0, spread, n).astype(dt))  # wraps: fine, still ids
     xyz = rng.normal(size=(n, 3)).astype(np.float32)
-    segs = split_segments(DecodedCloud(xyz=xyz, fields={'s': ids}), 's')
+    decoded = DecodedCloud(xyz=xyz, fields={'s': ids})
+    if any(not -2**31 <= int(v) < 2**31 for v in ids):  # segment_id is an INT32 downstream
+        with pytest.raises(DecodeError, match='outside the int32 range'):
+            split_segments(decoded, 's')
+        return
+    segs = split_segments(decoded, 's')
     expect_ids = sorted({int(v) for v in ids})
     assert [s for s, _ in segs] == expect_ids
     for seg_id, part in segs:
