@@ -42,26 +42,51 @@ def fps_indices(xyz: np.ndarray, m: int) -> np.ndarray:
     return idx
 
 
+def canonical_order(xyz: np.ndarray) -> np.ndarray:
+    """Indices sorting points by (x, y, z): (N, 3) -> (N,) int64, the same for any input order."""
+    return np.lexsort((xyz[:, 2], xyz[:, 1], xyz[:, 0]))
+
+
+def hashed_subset(xyz: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
+    """A seeded pseudo-random subset of m points chosen by their coordinates, not positions.
+
+    xyz: (N, 3) float32, m <= N -> (m,) int64 indices, ordered by hash. Each point's rank is
+    a hash of its coordinate bits and the seed (splitmix64), so a shuffled cloud gives the
+    same points in the same order; O(N), no sort of the whole cloud.
+    """
+    bits = np.ascontiguousarray(xyz, dtype=np.float32).view(np.uint32).astype(np.uint64)
+    with np.errstate(over='ignore'):   # uint64 arithmetic wraps on purpose
+        h = (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
+             ^ bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
+             ^ bits[:, 2] * np.uint64(0x165667B19E3779F9) ^ np.uint64(seed & (2**64 - 1)))
+        h ^= h >> np.uint64(30)
+        h *= np.uint64(0xBF58476D1CE4E5B9)
+        h ^= h >> np.uint64(27)
+        h *= np.uint64(0x94D049BB133111EB)
+        h ^= h >> np.uint64(31)
+    idx = np.argpartition(h, m - 1)[:m] if m < len(h) else np.arange(len(h))
+    return idx[np.argsort(h[idx], kind='stable')]
+
+
 def resample(xyz: np.ndarray, n: int, method: ResampleMethod = 'fps', seed: int = 0) -> np.ndarray:
-    """Any number of points -> exactly n points.
+    """Any number of points -> exactly n points, independent of the input point order.
 
     xyz: (N, 3) float32 with N >= 1 and finite values -> (n, 3) float32.
-    More points: FPS (default) or a seeded random subset. Fewer points: every
-    point kept, then points repeated in order (never zero padding).
+    More points: FPS (default; geometric start, so order-free up to exact ties) or a seeded
+    subset chosen by coordinate hash. Fewer points: every point kept, then points repeated
+    in (x, y, z) order (never zero padding); exactly n: the points in (x, y, z) order. So a
+    shuffled cloud gives the same array, bit for bit (FPS: up to exact distance ties).
     """
     xyz = np.ascontiguousarray(xyz, dtype=np.float32)
     count = xyz.shape[0]
-    if count == n:
-        return xyz
-    if count < n:
-        return xyz[np.arange(n) % count]
-    rng = np.random.default_rng(seed)
+    if count <= n:   # exactly n too: the encoder's sums and tie-breaks then see one order
+        return xyz[canonical_order(xyz)[np.arange(n) % count]]
     if method == 'random':
-        return xyz[np.sort(rng.choice(count, n, replace=False))]
+        return xyz[hashed_subset(xyz, n, seed)]
     if method != 'fps':
         raise ValueError(f"resample method must be 'fps' or 'random', got {method!r}")
     if count > FPS_MAX_INPUT:
-        xyz = xyz[np.sort(rng.choice(count, FPS_MAX_INPUT, replace=False))]
+        xyz = xyz[hashed_subset(xyz, FPS_MAX_INPUT, seed)]
     return xyz[fps_indices(xyz, n)]
 
 
