@@ -170,7 +170,7 @@ def _structured_view(msg: Any, names: Sequence[str], *, max_points: int,
     if n == 0 and not allow_empty:
         raise DecodeError(f'cloud is empty (width={width}, height={height})')
     if n > max_points:
-        raise DecodeError(f'cloud has {n:,} points, more than max_points={max_points:,}')
+        raise DecodeError(f'too many points: {n:,} > max_points={max_points:,}')
 
     by_name = _index_fields(attrs['fields'])
     order = '>' if bool(attrs['is_bigendian']) else '<'
@@ -314,8 +314,8 @@ def split_segments(decoded: DecodedCloud, field_name: str, *,
         if seg_id in skip:
             continue
         if not -INT32_LIMIT <= seg_id < INT32_LIMIT:  # the answer's segment_id is an INT32
-            raise DecodeError(f'segment field {field_name!r} holds id {seg_id}, outside the '
-                              'int32 range of segment_id')
+            raise DecodeError(f'segment field {field_name!r} holds an id out of range for '
+                              f'segment_id ({seg_id} does not fit in int32)')
         out.append((seg_id, chunk))
     return out
 

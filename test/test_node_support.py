@@ -55,10 +55,10 @@ def test_node_stats_snapshot() -> None:
     stats.on_batch(4)
     stats.on_published(1, 3, 0.010, None)
     stats.on_published(0, 1, 0.030, 0.050)
-    snap = stats.snapshot(dropped=[0, 5], queue_depths=[1, 2])
+    snap = stats.snapshot(queue_depths=[1, 2])
     assert snap.received == [1, 2] and snap.processed == [1, 1] and snap.objects == 4
     assert snap.rejected == {'missing field': 2, 'too few points': 1}
-    assert snap.dropped == [0, 5] and snap.queue_depths == [1, 2]
+    assert snap.dropped == [0, 0] and snap.queue_depths == [1, 2]
     assert snap.skipped_segments == 3 and snap.batch_size_mean == 4.0
     assert snap.latency_receipt_ms[0] == pytest.approx(20.0)
     assert snap.latency_stamp_ms[0] == pytest.approx(50.0) and snap.latency_samples == 2

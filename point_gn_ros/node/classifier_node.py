@@ -168,7 +168,8 @@ class ClassifierNode(Node):
     def _on_cloud(self, topic_index: int, msg: PointCloud2) -> None:
         """Subscription callback: enqueue with the receipt time, nothing else."""
         self._stats.on_received(topic_index)
-        self._queue.put(topic_index, msg)
+        if self._queue.put(topic_index, msg):     # the oldest waiting message was pushed out
+            self._stats.on_dropped(topic_index)
 
     # ------------------------------------------------------------------ output
 
@@ -199,7 +200,7 @@ class ClassifierNode(Node):
     # ------------------------------------------------------------------ diagnostics
 
     def _publish_diagnostics(self) -> None:
-        snap = self._stats.snapshot(self._queue.dropped(), self._queue.depths())
+        snap = self._stats.snapshot(self._queue.depths())
         arr = self._diagnostics.build(
             self.get_fully_qualified_name(), snap, self.settings, self._pipeline.topic_names,
             self._worker.is_alive(), self.recognizer.bank,

@@ -2,7 +2,9 @@
 
 Statuses: `<node>: pipeline` (counters, rates, latencies), `<node>: input <topic>` per input
 topic, `<node>: bank`. Levels compare with the previous report: WARN when messages were
-dropped or rejected since then, ERROR on classification errors or a dead worker.
+dropped or rejected since then, ERROR when messages failed (decode, classify or publish
+raised) or the worker died. The counters satisfy, in every report,
+`received = answered + dropped + rejected + failed + in_flight` (see node/stats.py).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ class DiagnosticsBuilder:
     """Builds each report; remembers the previous one's totals to detect new problems."""
 
     def __init__(self) -> None:
-        self._last: tuple[int, int, int] = (0, 0, 0)   # drops, rejects, errors
+        self._last: tuple[int, int, int] = (0, 0, 0)   # drops, rejects, failed messages
 
     def build(self, name: str, snap: StatsSnapshot, settings: Settings,
               topic_names: Sequence[str], worker_alive: bool, bank: Any,
@@ -29,10 +31,11 @@ class DiagnosticsBuilder:
         """DiagnosticArray (header unset) for node `name` (fully qualified)."""
         s = settings
         drops, rejects = sum(snap.dropped), sum(snap.rejected.values())
+        failed = sum(snap.failed.values())
         new_drops = drops - self._last[0]
         new_rejects = rejects - self._last[1]
-        new_errors = snap.errors - self._last[2]
-        self._last = (drops, rejects, snap.errors)
+        new_failed = failed - self._last[2]
+        self._last = (drops, rejects, failed)
 
         level, message = DiagnosticStatus.OK, 'ok'
         problems = []
@@ -44,8 +47,9 @@ class DiagnosticsBuilder:
             level, message = DiagnosticStatus.WARN, '; '.join(problems)
         if not worker_alive:
             level, message = DiagnosticStatus.ERROR, 'worker thread stopped'
-        elif new_errors:
-            level, message = DiagnosticStatus.ERROR, f'classification failed: {snap.last_error}'
+        elif new_failed:
+            level, message = (DiagnosticStatus.ERROR,
+                              f'{new_failed} message(s) failed; last: {snap.last_error}')
 
         pipeline = DiagnosticStatus(level=level, name=f'{name}: pipeline', message=message,
                                     hardware_id=s.device)
@@ -53,8 +57,11 @@ class DiagnosticsBuilder:
             'input_rate_hz': f'{snap.input_rate_hz:.2f}',
             'processed_rate_hz': f'{snap.processed_rate_hz:.2f}',
             'objects_rate_hz': f'{snap.objects_rate_hz:.2f}',
+            # The identity: received = answered + dropped + rejected + failed + in_flight.
             'received': sum(snap.received),
-            'processed': sum(snap.processed),
+            'answered': snap.answered,
+            'processed': snap.answered,          # the former name of 'answered'
+            'in_flight': snap.in_flight,
             'objects': snap.objects,
             'latency_receipt_p50_ms': fmt_ms(snap.latency_receipt_ms[0]),
             'latency_receipt_p99_ms': fmt_ms(snap.latency_receipt_ms[1]),
@@ -67,7 +74,10 @@ class DiagnosticsBuilder:
             'dropped': drops,
             'rejected': rejects,
             **{f'rejected.{reason}': n for reason, n in sorted(snap.rejected.items())},
+            'failed': failed,
+            **{f'failed.{stage}': n for stage, n in sorted(snap.failed.items())},
             'skipped_segments': snap.skipped_segments,
+            'objects_truncated': snap.objects_truncated,
             'errors': snap.errors,
         })
         statuses = [pipeline]

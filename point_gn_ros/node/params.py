@@ -26,6 +26,8 @@ class Settings:
     input_topics: tuple[str, ...]
     segment_field: str
     min_points: int
+    max_points_per_message: int
+    max_objects_per_message: int
     num_points: int
     resample: str
     device: str
@@ -53,6 +55,13 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                           'splits a message into objects (negative ids are ignored).', {}),
     'min_points': (16, 'Objects (or segments) with fewer finite points are rejected.',
                    {'integer_range': _int_range(1, 1_000_000)}),
+    # The two limits bound one message's service time (docs/NODE.md, "Limits").
+    'max_points_per_message': (500_000, 'Messages with more points are rejected unread '
+                                        '(counted as rejected.too many points).',
+                               {'integer_range': _int_range(1, 50_000_000)}),
+    'max_objects_per_message': (64, 'Most objects classified per message: beyond it only the '
+                                    'largest segments are kept (objects_truncated).',
+                                {'integer_range': _int_range(1, 100_000)}),
     'num_points': (1024, "Points per object after resampling; must equal the bank's encoder "
                          'configuration.', {'integer_range': _int_range(16, 65536)}),
     'resample': ('fps', "Resampling to num_points: 'fps' (farthest point) or 'random'.",

@@ -3,9 +3,11 @@
 One worker thread takes micro-batches of queued messages, decodes and splits each into
 object clouds (`prepare`), classifies all objects of the batch together in chunks of
 `max_batch` (`classify`) and hands each message's slice of the results to a `publish`
-callback (`Answer`). A batch that fails is retried message by message so that one bad
-message costs only itself. The node (classifier_node.py) owns the ROS side: subscriptions
-enqueue, `publish` turns an Answer into messages.
+callback (`Answer`). A batch that fails is retried message by message, and every step
+catches per message, so that one bad message costs only itself: each message is settled
+exactly once in NodeStats (answered, rejected{reason} or failed{stage}). The node
+(classifier_node.py) owns the ROS side: subscriptions enqueue, `publish` turns an Answer
+into messages.
 """
 
 from __future__ import annotations
@@ -74,6 +76,7 @@ class Pipeline:
         self._stats = stats
         self._warn = warn
         self._stop = stop
+        self._pending: set[int] = set()   # ids of this batch's messages not yet settled
 
     @property
     def class_names(self) -> list[str]:
@@ -97,48 +100,96 @@ class Pipeline:
             except Exception as exc:  # noqa: BLE001 - the node must outlive any one batch
                 if self._stop.is_set() or not alive():
                     return
-                self.on_failure(len(items), exc)
+                # A bug outside the per-message guards: what is still unsettled fails here.
+                for item in items:
+                    if id(item) in self._pending:
+                        self.fail(item, 'internal', exc)
+            finally:
+                self._pending.clear()
 
     def process(self, items: Sequence[QueueItem[Any]], publish: Callable[[Answer], None]
                 ) -> None:
-        """Prepare, classify and publish one micro-batch of messages."""
-        jobs = [job for job in map(self.prepare, items) if job is not None]
+        """Prepare, classify and publish one micro-batch of messages.
+
+        Each message is settled exactly once (answered, rejected or failed at a stage) unless
+        the node stops first; a failure costs only the message it belongs to.
+        """
+        self._pending = {id(item) for item in items}
+        jobs = []
+        for item in items:
+            try:
+                job = self.prepare(item)
+            except Exception as exc:  # noqa: BLE001 - a decoder bug costs one message
+                self.fail(item, 'decode', exc)
+                continue
+            if job is not None:
+                jobs.append(job)
+        if not jobs:
+            return
         try:
             results = self.classify([c for job in jobs for c in job.clouds])
-        except Exception:
-            if len(jobs) <= 1 or self._stop.is_set():
-                raise
+        except Exception as exc:  # noqa: BLE001 - retried message by message below
+            if self._stop.is_set():
+                return
+            if len(jobs) == 1:
+                self.fail(jobs[0].item, 'classify', exc)
+                return
             # One message broke the batch: classify message by message, so only that
-            # message is lost and the others are still answered.
+            # message is lost and its batch-mates are still answered.
             for job in jobs:
                 try:
-                    for answer in self.answers([job], self.classify(job.clouds)):
-                        publish(answer)
-                except Exception as exc:  # noqa: BLE001 - see serve()
+                    one = self.classify(job.clouds)
+                except Exception as exc_one:  # noqa: BLE001 - counted against this message
                     if self._stop.is_set():
                         return
-                    self.on_failure(1, exc)
+                    self.fail(job.item, 'classify', exc_one)
+                    continue
+                for answer in self.answers([job], one):
+                    self.publish_one(answer, publish)
             return
         for answer in self.answers(jobs, results):
-            publish(answer)
+            self.publish_one(answer, publish)
 
     # ------------------------------------------------------------------ steps
 
     def reject(self, item: QueueItem[Any], reason: str, detail: str) -> None:
         """Count a rejected message and warn (rate-limited, per topic)."""
+        self._pending.discard(id(item))
         self._stats.on_rejected(reason)
         self._warn((item.topic_index,),
                    f'dropped a message on {self.topic_names[item.topic_index]}: {detail}')
 
+    def fail(self, item: QueueItem[Any], stage: str, exc: Exception) -> None:
+        """Count one message lost to an unexpected exception at `stage`, and warn."""
+        what = f'{type(exc).__name__}: {exc}'
+        self._pending.discard(id(item))
+        self._stats.on_failed(stage, what)
+        self._warn(('failed', stage), f'failed to {stage} a message on '
+                                      f'{self.topic_names[item.topic_index]}: {what}')
+
+    def publish_one(self, answer: Answer, publish: Callable[[Answer], None]) -> None:
+        """publish(answer) (which counts it answered); an exception fails this message only."""
+        try:
+            publish(answer)
+        except Exception as exc:  # noqa: BLE001 - counted against this message
+            if not self._stop.is_set():
+                self.fail(answer.job.item, 'publish', exc)
+        else:
+            self._pending.discard(id(answer.job.item))
+
     def prepare(self, item: QueueItem[Any]) -> Job | None:
-        """Decode and split one message into object clouds; None if it is rejected."""
+        """Decode and split one message into object clouds; None if it is rejected.
+
+        Messages over max_points_per_message are rejected before anything is copied; beyond
+        max_objects_per_message only the largest segments are kept (counted as truncated).
+        """
         from point_gn_ros.pointcloud2 import decode_xyz, split_segments
         s = self.settings
         seg_field = s.segment_field
         try:
             # allow_empty: an empty or all-NaN cloud counts as 'too few points', not malformed.
             decoded = decode_xyz(item.payload, (seg_field,) if seg_field else (),
-                                 allow_empty=True)
+                                 max_points=s.max_points_per_message, allow_empty=True)
             if not seg_field:
                 if len(decoded) < s.min_points:
                     self.reject(item, REJECT_TOO_FEW, f'{len(decoded)} finite point(s), '
@@ -149,19 +200,21 @@ class Pipeline:
         except DecodeError as exc:
             self.reject(item, reason_key(str(exc)), str(exc))
             return None
-        job = Job(item, [], [])
-        skipped = 0
-        for seg_id, xyz in segments:
-            if seg_id < 0:
-                continue          # unsegmented / background points by convention
-            if len(xyz) < s.min_points:
-                skipped += 1
-                continue
-            job.segment_ids.append(seg_id)
-            job.clouds.append(xyz)
-        if skipped:
-            self._stats.on_skipped_segments(skipped)
-        return job
+        kept = [(seg_id, xyz) for seg_id, xyz in segments if seg_id >= 0]  # < 0: unsegmented
+        big = [(seg_id, xyz) for seg_id, xyz in kept if len(xyz) >= s.min_points]
+        if len(kept) > len(big):
+            self._stats.on_skipped_segments(len(kept) - len(big))
+        if len(big) > s.max_objects_per_message:
+            # Keep the largest segments (ties: lower id), answered in id order as usual.
+            order = sorted(range(len(big)), key=lambda i: (-len(big[i][1]), big[i][0]))
+            chosen = sorted(order[:s.max_objects_per_message])
+            self._stats.on_truncated_objects(len(big) - len(chosen))
+            self._warn((item.topic_index, 'truncated'),
+                       f'a message on {self.topic_names[item.topic_index]} has {len(big)} '
+                       f'objects: classified the largest {s.max_objects_per_message} '
+                       '(max_objects_per_message)')
+            big = [big[i] for i in chosen]
+        return Job(item, [seg_id for seg_id, _ in big], [xyz for _, xyz in big])
 
     def classify(self, clouds: list[np.ndarray]) -> Results | None:
         """Labels, scores, top-k ids and scores of clouds, in chunks of max_batch.
@@ -192,12 +245,6 @@ class Pipeline:
             pos = sl.stop
             out.append(Answer(job, *(column[sl] for column in results)))
         return out
-
-    def on_failure(self, count: int, exc: Exception) -> None:
-        """Count and warn about `count` messages lost to an unexpected exception."""
-        self._stats.on_error(f'{type(exc).__name__}: {exc}')
-        self._warn(('error',), f'failed to classify {count} message(s): '
-                               f'{type(exc).__name__}: {exc}')
 
 
 def reason_key(text: str) -> str:

@@ -2,6 +2,12 @@
 
 The worker thread and the subscription callbacks record events; the diagnostics
 timer reads a consistent snapshot once a second.
+
+Every received message is settled exactly once, as answered, dropped (queue full),
+rejected (by reason) or failed (by stage); until then it is in flight. All of these change
+under one lock, so every snapshot satisfies the accounting identity exactly::
+
+    received = answered + dropped + rejected + failed + in_flight
 """
 
 from __future__ import annotations
@@ -69,7 +75,7 @@ class StatsSnapshot:
     processed_rate_hz: float
     objects_rate_hz: float
     received: list[int]
-    processed: list[int]
+    processed: list[int]                         # answered, per topic
     objects: int
     dropped: list[int]
     queue_depths: list[int]
@@ -82,6 +88,18 @@ class StatsSnapshot:
     errors: int = 0
     last_error: str = ''
     per_topic_input_hz: list[float] = field(default_factory=list)
+    failed: dict[str, int] = field(default_factory=dict)    # stage -> messages
+    in_flight: int = 0                                      # received, not yet settled
+    objects_truncated: int = 0
+
+    @property
+    def answered(self) -> int:
+        return sum(self.processed)
+
+    def unaccounted(self) -> int:
+        """Received minus (answered + dropped + rejected + failed + in_flight): always 0."""
+        return (sum(self.received) - self.answered - sum(self.dropped)
+                - sum(self.rejected.values()) - sum(self.failed.values()) - self.in_flight)
 
 
 class NodeStats:
@@ -104,16 +122,43 @@ class NodeStats:
         self._batches: deque[int] = deque(maxlen=100)
         self._errors = 0
         self._last_error = ''
+        self._dropped = [0] * num_topics
+        self._failed: Counter[str] = Counter()
+        self._in_flight = 0
+        self._objects_truncated = 0
 
     def on_received(self, topic_index: int) -> None:
+        """A message arrived (subscription callback); it is in flight until settled."""
         with self._lock:
             self._received[topic_index] += 1
+            self._in_flight += 1
             self._in_rate.add()
             self._topic_rates[topic_index].add()
 
+    def on_dropped(self, topic_index: int) -> None:
+        """Settled: a queued message was pushed out by a newer one (queue full)."""
+        with self._lock:
+            self._dropped[topic_index] += 1
+            self._in_flight -= 1
+
     def on_rejected(self, reason: str) -> None:
+        """Settled: the message was malformed or over a limit (counted by reason)."""
         with self._lock:
             self._rejected[reason] += 1
+            self._in_flight -= 1
+
+    def on_failed(self, stage: str, description: str) -> None:
+        """Settled: an unexpected exception at `stage` (decode, classify, publish) lost it."""
+        with self._lock:
+            self._failed[stage] += 1
+            self._in_flight -= 1
+            self._errors += 1
+            self._last_error = f'{stage}: {description}'
+
+    def on_truncated_objects(self, count: int) -> None:
+        """Objects left out of a message over max_objects_per_message (message answered)."""
+        with self._lock:
+            self._objects_truncated += count
 
     def on_skipped_segments(self, count: int) -> None:
         with self._lock:
@@ -125,9 +170,10 @@ class NodeStats:
 
     def on_published(self, topic_index: int, num_objects: int, receipt_latency_s: float,
                      stamp_latency_s: float | None) -> None:
-        """A message was answered; stamp latency is None when the header stamp is unset."""
+        """Settled: a message was answered; stamp latency is None when the stamp is unset."""
         with self._lock:
             self._processed[topic_index] += 1
+            self._in_flight -= 1
             self._objects += num_objects
             self._out_rate.add()
             if num_objects:
@@ -136,13 +182,8 @@ class NodeStats:
             if stamp_latency_s is not None:
                 self._lat_stamp.add(stamp_latency_s)
 
-    def on_error(self, description: str) -> None:
-        """An unexpected failure in the worker (the node keeps going)."""
-        with self._lock:
-            self._errors += 1
-            self._last_error = description
-
-    def snapshot(self, dropped: list[int], queue_depths: list[int]) -> StatsSnapshot:
+    def snapshot(self, queue_depths: list[int]) -> StatsSnapshot:
+        """Every counter, read under the lock (the identity holds); depths from the queue."""
         with self._lock:
             r50, r99 = self._lat_receipt.percentiles_ms()
             s50, s99 = self._lat_stamp.percentiles_ms()
@@ -153,7 +194,7 @@ class NodeStats:
                 received=list(self._received),
                 processed=list(self._processed),
                 objects=self._objects,
-                dropped=list(dropped),
+                dropped=list(self._dropped),
                 queue_depths=list(queue_depths),
                 rejected=dict(self._rejected),
                 skipped_segments=self._skipped_segments,
@@ -164,4 +205,7 @@ class NodeStats:
                 errors=self._errors,
                 last_error=self._last_error,
                 per_topic_input_hz=[m.rate() for m in self._topic_rates],
+                failed=dict(self._failed),
+                in_flight=self._in_flight,
+                objects_truncated=self._objects_truncated,
             )
