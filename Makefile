@@ -7,7 +7,7 @@ SHARED ?= ../shared
 MODELNET := $(SHARED)/datasets/modelnet40_1024
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test lint bench default-bank colcon-build clean
+.PHONY: venv demo test lint bench fuzz default-bank colcon-build clean
 
 venv: $(STAMP)
 
@@ -30,6 +30,12 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/point_gn bench
+
+# 10,000 seeded valid/invalid clouds through the node over DDS; every answer and the
+# diagnostics identity checked (CI runs 2,000: test/test_node_fuzz.py). FUZZ_COUNT=... to change.
+FUZZ_COUNT ?= 10000
+fuzz: $(STAMP)
+	$(PY) -m point_gn_ros.clients.fuzz --count $(FUZZ_COUNT) --json fuzz_report.json
 
 # Rebuild the shipped default bank from ../shared (only when the encoder version changes).
 default-bank: $(STAMP)
