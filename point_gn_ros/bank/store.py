@@ -26,6 +26,7 @@ import torch
 from point_gn_ros.core.config import ENCODER_VERSION, EncoderConfig
 from point_gn_ros.errors import BankError
 from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.validate import check_bank_arrays
 
 FORMAT_VERSION = 1
 DEFAULT_BANK_NAME = 'modelnet40_default.npz'
@@ -142,6 +143,7 @@ class FeatureBank:
         def bad(problem: str) -> BankError:
             return BankError(f'{path}: {problem}')
 
+        check_bank_arrays(path, a)   # limits and ranges first (bank/validate.py)
         try:
             meta = json.loads(a['meta'].tobytes().decode())
             if not isinstance(meta, dict):
