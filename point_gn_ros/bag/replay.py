@@ -71,6 +71,7 @@ class _Collector:
         self.received: dict[int, float] = {}            # message index -> monotonic receipt
         self.raw_answers: dict[tuple[int, int], tuple[int, float]] = {}
         self.unmatched = 0
+        self.duplicates = 0                             # a second answer to one message
         self.topic_indices: Counter[int] = Counter()
         self.class_names: list[str] | None = None
         self.diags: list[tuple[float, dict[str, str]]] = []
@@ -88,7 +89,10 @@ class _Collector:
         except DecodeError:
             d = None
         with self.cond:
-            if m is None or d is None or m.index in self.received:
+            if m is not None and d is not None and m.index in self.received:
+                self.duplicates += 1     # two nodes (one name) answering, or a re-publish
+                return
+            if m is None or d is None:
                 self.unmatched += 1
                 return
             self.received[m.index] = t
@@ -143,18 +147,22 @@ class _Graph:
                     return
                 raise
 
-    def find_classifier(self, topic: str) -> str | None:
-        """The node that subscribes to `topic` and publishes `<node>/classifications`."""
+    def find_classifiers(self, topic: str) -> list[str]:
+        """Every node that subscribes to `topic` and publishes `<node>/classifications`.
+
+        The default node name first, then alphabetical.
+        """
         own = self.node.get_fully_qualified_name()
         found = [node_fqn(i.node_name, i.node_namespace)
                  for i in self.node.get_subscriptions_info_by_topic(topic)]
         # Endpoints can be discovered before their node's name ('_NODE_NAME_UNKNOWN_').
         found = sorted({f for f in found if f != own and '_UNKNOWN_' not in f},
                        key=lambda f: (f != DEFAULT_NODE_FQN, f))
-        for fqn in found:
-            if self.node.count_publishers(fqn + '/classifications') > 0:
-                return fqn
-        return None
+        return [f for f in found if self.node.count_publishers(f + '/classifications') > 0]
+
+    def find_classifier(self, topic: str) -> str | None:
+        """The preferred classifier node of `topic` (see find_classifiers), or None."""
+        return next(iter(self.find_classifiers(topic)), None)
 
     def close(self) -> None:
         self._stop.set()
@@ -186,6 +194,7 @@ def run_replay(contents: BagContents, opts: ReplayOptions) -> RunResult:
         node.create_subscription(DiagnosticArray, '/diagnostics', col.on_diagnostics, 10)
         cls_sub = _discover(graph, contents.topic, pub, fqn, col, opts)
         opts.log(f'node {fqn[0]} found; classifications on {cls_sub.topic_name}')
+        others = _others_answering(graph, contents.topic, fqn[0], cls_sub, opts)
         col.wait(lambda: col.class_names is not None, CLASS_NAMES_WAIT_S)
         col.wait(lambda: bool(col.diags), DIAG_WAIT_S)
         base_diag = col.diags[-1][1] if col.diags else None
@@ -198,6 +207,7 @@ def run_replay(contents: BagContents, opts: ReplayOptions) -> RunResult:
             t_end = time.monotonic()   # a diagnostics snapshot taken after the last event
             col.wait(lambda: col.diags[-1][0] > t_end, DIAG_WAIT_S)
         result.node = fqn[0]
+        result.info.update(others)
         _finish(result, col, contents, base_diag)
         return result
     finally:
@@ -232,12 +242,27 @@ def _discover(graph: _Graph, topic: str, pub: Any, fqn: list[str | None], col: _
                 and (pub is None or pub.get_subscription_count() > 0)):
             return cls_sub
         time.sleep(0.05)
-    who = fqn[0] or 'no node'
-    raise ReplayError(f'{who} did not subscribe to {topic} and publish classifications within '
-                      f'{opts.discovery_timeout:g} s (ROS_DOMAIN_ID='
+    who = (f'node {fqn[0]} did not subscribe to {topic} and publish classifications'
+           if fqn[0] else f'no classifier node subscribed to {topic} and published '
+                          'classifications')
+    raise ReplayError(f'{who} within {opts.discovery_timeout:g} s (ROS_DOMAIN_ID='
                       f'{os.environ.get("ROS_DOMAIN_ID", "0")}): is the classifier node '
                       'running on this domain' + (', with --node-name right?' if opts.node_name
                                                   else '?'))
+
+
+def _others_answering(graph: _Graph, topic: str, fqn: str | None, cls_sub: Any,
+                      opts: ReplayOptions) -> dict[str, Any]:
+    """Warn when more than one node would answer the bag's topic (answers would double)."""
+    nodes = graph.find_classifiers(topic)
+    publishers = cls_sub.get_publisher_count()
+    if len(nodes) > 1:
+        opts.log(f'warning: {len(nodes)} classifier nodes subscribe to {topic} '
+                 f'({", ".join(nodes)}); answers are read from {fqn} only')
+    if publishers > 1:
+        opts.log(f'warning: {publishers} publishers on {cls_sub.topic_name}: several nodes '
+                 'with the same name? their answers will be counted as duplicates')
+    return {'classifier_nodes': nodes, 'classification_publishers': publishers}
 
 
 def _send(contents: BagContents, pub: Any, col: _Collector, opts: ReplayOptions) -> RunResult:
@@ -311,7 +336,7 @@ def _finish(result: RunResult, col: _Collector, contents: BagContents,
         node_names = col.class_names
         raw = dict(col.raw_answers)
         final_diag = col.diags[-1][1] if col.diags else None
-        result.info.update(unmatched_answers=col.unmatched,
+        result.info.update(unmatched_answers=col.unmatched, duplicate_answers=col.duplicates,
                            topic_indices=sorted(col.topic_indices))
     if node_names is None:
         node_names = contents.class_names

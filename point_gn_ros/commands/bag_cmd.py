@@ -83,6 +83,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='offline: open-set threshold, as the node parameter')
     r.add_argument('--min-points', type=int, default=16,
                    help='offline: skip objects with fewer points, as the node (default 16)')
+    r.add_argument('--min-answered', type=float, default=0.0, metavar='SHARE',
+                   help='exit 1 unless at least this share (0-1) of the sent messages is '
+                        'answered (default 0: exit 1 only when nothing is); duplicate '
+                        'answers also exit 1')
     r.add_argument('--json', default=None, metavar='REPORT.json', help='write the JSON report')
     r.add_argument('--markdown', default=None, metavar='REPORT.md',
                    help='write the Markdown report')
@@ -125,6 +129,9 @@ def _replay(args: argparse.Namespace) -> int:
     from point_gn_ros.bag.reader import read_bag
     from point_gn_ros.bag.report import build_report, format_markdown, write_outputs
 
+    if not 0.0 <= args.min_answered <= 1.0:
+        from point_gn_ros.bag.errors import ReplayError
+        raise ReplayError(f'--min-answered must be a share in [0, 1], got {args.min_answered:g}')
     contents = read_bag(args.bag, args.topic, keep_clouds=args.offline)
     if args.offline:
         from point_gn_ros.bag.offline import run_offline
@@ -143,4 +150,23 @@ def _replay(args: argparse.Namespace) -> int:
         print(format_markdown(report, contents.class_names))
     elif not (args.json or args.markdown):
         print(json.dumps({k: report[k] for k in ('accuracy', 'sent', 'answered', 'latency_ms')}))
-    return 0
+    problems = replay_problems(report, args.min_answered)
+    for problem in problems:
+        print(f'point_gn: replay: {problem}', file=sys.stderr)
+    return 1 if problems else 0
+
+
+def replay_problems(report: dict, min_answered: float = 0.0) -> list[str]:
+    """Why a replay failed: too little answered, or answered twice; [] when it passed."""
+    problems = []
+    sent, answered = report['sent'], report['answered']
+    if sent and (answered == 0 or answered < min_answered * sent):
+        problems.append(f'answered {answered} of {sent} message(s)'
+                        + (f', less than --min-answered {min_answered:g}' if answered else
+                           ': is the node classifying (see its log and /diagnostics)?'))
+    dupes = report.get('info', {}).get('duplicate_answers', 0)
+    if dupes:
+        problems.append(f'{dupes} duplicate answer(s): more than one node answers '
+                        f'{report["topic"]} (nodes: '
+                        f'{", ".join(report["info"].get("classifier_nodes", [])) or "?"})')
+    return problems
