@@ -38,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument('--folds', type=int, default=5, help='cross-validation folds (default 5)')
     b.add_argument('--false-reject-rate', type=float, default=0.05,
                    help='open-set calibration target (default 0.05)')
+    b.add_argument('--strict', action='store_true',
+                   help='fail when any file of the dataset is skipped (unreadable, empty, '
+                        'unsupported); by default they are listed and left out')
     b.add_argument('--default-bank', action='store_true',
                    help='settings of the shipped default bank (float16, dims chosen among '
                         'those fitting 20 MB)')
@@ -65,6 +68,7 @@ def _build(args: argparse.Namespace) -> int:
         args.dtype = 'float16'
         dims = args.dims and dims or [256, 384, 512]
     print(f'{ds.format} {ds.split}: {len(ds)} objects, {len(ds.class_names)} classes')
+    _report_input(ds, cfg, args, dims)
     bank = build_bank(ds, cfg, args.device, standardize_options=tuple(args.standardize),
                       dims_options=tuple(dims), folds=args.folds,
                       false_reject_rate=args.false_reject_rate,
@@ -76,6 +80,45 @@ def _build(args: argparse.Namespace) -> int:
           f'(CV accuracy {100 * sel["cv_accuracy"]:.2f} %)')
     print(f'wrote {path} ({path.stat().st_size / 1e6:.1f} MB): {len(bank)} entries')
     return 0
+
+
+def _report_input(ds, cfg, args: argparse.Namespace, dims: list) -> None:  # noqa: ANN001
+    """Print the settings in use; list skipped files; warn on classes too small for the folds.
+
+    Raises DatasetError under --strict when files were skipped.
+    """
+    import sys
+    from collections import Counter
+
+    from point_gn_ros.errors import DatasetError
+
+    skipped = list(getattr(ds, 'skipped', []))
+    for where, why in skipped[:_MAX_LISTED]:
+        print(f'skipped {where}: {why}', file=sys.stderr)
+    if len(skipped) > _MAX_LISTED:
+        print(f'skipped ... and {len(skipped) - _MAX_LISTED} more file(s)', file=sys.stderr)
+    if skipped:
+        print(f'warning: {len(skipped)} file(s) skipped, not in the bank', file=sys.stderr)
+        if args.strict:
+            raise DatasetError(f'{ds.path}: {len(skipped)} file(s) could not be used '
+                               f'(--strict), first: {skipped[0][0]}: {skipped[0][1]}')
+    counts = Counter(int(label) for label in ds.labels)
+    small = [(ds.class_names[c], counts.get(c, 0)) for c in range(len(ds.class_names))
+             if counts.get(c, 0) < args.folds]
+    if small:
+        listed = ', '.join(f'{name} ({n})' for name, n in small[:10])
+        print(f'warning: {len(small)} class(es) have fewer examples than --folds '
+              f'{args.folds}, so some CV folds hold none of them and the chosen settings and '
+              f'CV accuracy are less reliable: {listed}' + (' ...' if len(small) > 10 else ''),
+              file=sys.stderr)
+    c = cfg.to_dict()
+    print('settings: ' + ' '.join(f'{k}={v}' for k, v in c.items())
+          + f' dtype={args.dtype} folds={args.folds}'
+          + f' dims={[d or "all" for d in dims]} standardize={list(args.standardize)}'
+          + f' false_reject_rate={args.false_reject_rate:g}')
+
+
+_MAX_LISTED = 20   # skipped files listed one per line, then counted
 
 
 def _info(args: argparse.Namespace) -> int:

@@ -84,7 +84,13 @@ class FolderDataset(Dataset):
             self.skipped.append((str(f), f'unsupported extension {f.suffix!r}'))
             return None
         try:
+            if f.stat().st_size == 0:    # say so plainly, not as a format's parse error
+                self.skipped.append((str(f), 'empty file (0 bytes)'))
+                return None
             xyz = read_points(f)
+        except OSError as exc:
+            self.skipped.append((str(f), f'unreadable ({exc.strerror or exc})'))
+            return None
         except DatasetError as exc:
             self.skipped.append((str(f), str(exc).removeprefix(f'{f}: ')))
             return None
