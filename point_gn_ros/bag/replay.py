@@ -352,6 +352,7 @@ def _finish(result: RunResult, col: _Collector, contents: BagContents,
                 return int(final_diag[key]) - int(base_diag[key])
             except (KeyError, ValueError):
                 return 0
-        result.dropped = delta('dropped') + delta('rejected')
+        result.dropped = delta('dropped') + delta('rejected') + delta('failed')
         result.info.update(node_dropped_queue_full=delta('dropped'),
-                           node_rejected=delta('rejected'), node_received=delta('received'))
+                           node_rejected=delta('rejected'), node_failed=delta('failed'),
+                           node_received=delta('received'))
