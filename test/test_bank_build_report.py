@@ -61,3 +61,13 @@ def test_strict_refuses_a_tree_with_skipped_files(tmp_path: Path,
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith('point_gn: error: ') and '3 file(s) could not be used' in err[-1]
     assert not out.exists()
+
+
+def test_a_class_without_examples_is_an_error(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture) -> None:
+    root = _tree(tmp_path / 'data')
+    (root / 'empty_class').mkdir()
+    (root / 'empty_class' / 'broken.pcd').write_bytes(b'')
+    assert cli_main(['bank', 'build', str(root), '-o', str(tmp_path / 'b.npz')]) == 2
+    err = capsys.readouterr().err
+    assert 'empty_class' in err and 'point_gn: error: ' in err

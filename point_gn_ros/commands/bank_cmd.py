@@ -103,6 +103,11 @@ def _report_input(ds, cfg, args: argparse.Namespace, dims: list) -> None:  # noq
             raise DatasetError(f'{ds.path}: {len(skipped)} file(s) could not be used '
                                f'(--strict), first: {skipped[0][0]}: {skipped[0][1]}')
     counts = Counter(int(label) for label in ds.labels)
+    empty = [name for c, name in enumerate(ds.class_names) if not counts.get(c)]
+    if empty:   # the bank would be refused on load (bank/validate.py): say so now
+        raise DatasetError(f'{ds.path}: {len(empty)} class(es) have no examples in split '
+                           f'{ds.split!r}: {", ".join(empty[:10])}'
+                           + (' ...' if len(empty) > 10 else ''))
     small = [(ds.class_names[c], counts.get(c, 0)) for c in range(len(ds.class_names))
              if counts.get(c, 0) < args.folds]
     if small:
