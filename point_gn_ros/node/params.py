@@ -106,3 +106,17 @@ def settings_from_values(values: dict[str, Any]) -> Settings:
         if not torch.cuda.is_available():
             raise NodeConfigError("parameter device='cuda' but CUDA is not available")
     return Settings(**values)
+
+
+def resolve_unknown_threshold(bank: Any, value: float) -> float | None:
+    """The effective open-set threshold: None when 0 (off); the bank's calibrated one if < 0.
+
+    Raises NodeConfigError when value < 0 and the bank holds no calibration.
+    """
+    if value >= 0:
+        return value or None
+    calib = bank.meta.get('unknown_calibration')
+    if not calib:
+        raise NodeConfigError(f'unknown_threshold={value:g} asks for the calibrated threshold, '
+                              f'but {bank.path} holds no calibration')
+    return float(calib['threshold'])

@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from point_gn_ros.errors import DecodeError
-from point_gn_ros.node.params import Settings
+from point_gn_ros.node.frames import to_z_up
+from point_gn_ros.node.params import Settings, resolve_unknown_threshold
 from point_gn_ros.node.stats import NodeStats
 from point_gn_ros.node.work_queue import QueueItem, WorkQueue
 
@@ -37,6 +38,12 @@ class Job:
     item: QueueItem[Any]
     segment_ids: list[int]
     clouds: list[np.ndarray]
+    # (3, 3) rotation of the input frame into z-up (node/frames.py); None = already z-up.
+    rotation: np.ndarray | None = None
+
+    def model_clouds(self) -> list[np.ndarray]:
+        """The clouds as the classifier sees them: turned z-up (outputs keep the input frame)."""
+        return [to_z_up(c, self.rotation) for c in self.clouds]
 
 
 @dataclass
@@ -63,7 +70,9 @@ class Pipeline:
     """Turns queued PointCloud2 messages into Answers (thread: the worker).
 
     recognizer: a `point_gn_ros.recognizer.Recognizer`; warn(key, text): a rate-limited
-    logger; topic_names: display name per topic index (the node sets the resolved names).
+    logger; topic_names: display name per topic index (the node sets the resolved names);
+    frame_rotation(frame_id): rotation into z-up or None (node/frames.py UpConvention, or
+    later a tf2 lookup). `update()` swaps settings and/or the recognizer between batches.
     """
 
     def __init__(self, recognizer: Any, settings: Settings, stats: NodeStats,
@@ -71,9 +80,35 @@ class Pipeline:
         self.recognizer = recognizer
         self.settings = settings
         self.topic_names: list[str] = list(settings.input_topics)
+        self.frame_rotation: Callable[[str], np.ndarray | None] = lambda frame_id: None
         self._stats = stats
         self._warn = warn
         self._stop = stop
+        self._pending: tuple[Settings, Any] | None = None
+        self._pending_lock = threading.Lock()
+        self.update(settings, recognizer)
+        self._apply_pending()
+
+    def update(self, settings: Settings | None = None, recognizer: Any = None) -> None:
+        """Use new settings and/or another recognizer from the next batch on (any thread).
+
+        The swap happens between batches, so a batch is never classified half with the old
+        and half with the new. The caller has validated both (resolve_unknown_threshold).
+        """
+        with self._pending_lock:
+            old_s, old_r = self._pending or (self.settings, self.recognizer)
+            self._pending = (settings or old_s, recognizer or old_r)
+
+    def _apply_pending(self) -> None:
+        with self._pending_lock:
+            pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        settings, recognizer = pending
+        recognizer.top_k = settings.top_k
+        recognizer.classifier.unknown_threshold = resolve_unknown_threshold(
+            recognizer.bank, settings.unknown_threshold)
+        self.settings, self.recognizer = settings, recognizer
 
     @property
     def class_names(self) -> list[str]:
@@ -102,9 +137,10 @@ class Pipeline:
     def process(self, items: Sequence[QueueItem[Any]], publish: Callable[[Answer], None]
                 ) -> None:
         """Prepare, classify and publish one micro-batch of messages."""
+        self._apply_pending()
         jobs = [job for job in map(self.prepare, items) if job is not None]
         try:
-            results = self.classify([c for job in jobs for c in job.clouds])
+            results = self.classify([c for job in jobs for c in job.model_clouds()])
         except Exception:
             if len(jobs) <= 1 or self._stop.is_set():
                 raise
@@ -112,7 +148,7 @@ class Pipeline:
             # message is lost and the others are still answered.
             for job in jobs:
                 try:
-                    for answer in self.answers([job], self.classify(job.clouds)):
+                    for answer in self.answers([job], self.classify(job.model_clouds())):
                         publish(answer)
                 except Exception as exc:  # noqa: BLE001 - see serve()
                     if self._stop.is_set():
@@ -144,12 +180,12 @@ class Pipeline:
                     self.reject(item, REJECT_TOO_FEW, f'{len(decoded)} finite point(s), '
                                                       f'min_points is {s.min_points}')
                     return None
-                return Job(item, [-1], [decoded.xyz])
+                return Job(item, [-1], [decoded.xyz], self._rotation(item))
             segments = split_segments(decoded, seg_field)
         except DecodeError as exc:
             self.reject(item, reason_key(str(exc)), str(exc))
             return None
-        job = Job(item, [], [])
+        job = Job(item, [], [], self._rotation(item))
         skipped = 0
         for seg_id, xyz in segments:
             if seg_id < 0:
@@ -162,6 +198,9 @@ class Pipeline:
         if skipped:
             self._stats.on_skipped_segments(skipped)
         return job
+
+    def _rotation(self, item: QueueItem[Any]) -> np.ndarray | None:
+        return self.frame_rotation(item.payload.header.frame_id)
 
     def classify(self, clouds: list[np.ndarray]) -> Results | None:
         """Labels, scores, top-k ids and scores of clouds, in chunks of max_batch.
