@@ -27,7 +27,6 @@ INPUT_TIMEOUT_S = 2.0
 
 @pytest.fixture(scope='module')
 def node(tiny_bank: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[NodeProcess]:
-    require_ros_extras('vision_msgs.msg')
     # Default QoS (reliable), a misspelt parameter, and a topic nobody publishes on.
     proc = NodeProcess({'bank_path': str(tiny_bank), 'num_points': TEST_NUM_POINTS,
                         'input_topics': [TOPIC, SILENT], 'autostart': False,
@@ -58,15 +57,21 @@ def io(harness: Harness, node: NodeProcess) -> dict:
     """Node configured and activated from here; publishers and collectors of every output."""
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import PointCloud2
-    from vision_msgs.msg import Detection3DArray
+
+    from point_gn_ros.node.outputs import vision_msgs_available
 
     pub = harness.node.create_publisher(PointCloud2, TOPIC, reliable_qos(64))
     out = {
         'pub': pub,
         'cls': harness.collect(PointCloud2, f'{NODE_FQN}/classifications', reliable_qos(200)),
-        'det': harness.collect(Detection3DArray, f'{NODE_FQN}/detections', reliable_qos(200)),
         'diag': harness.collect(DiagnosticArray, '/diagnostics', reliable_qos(50)),
+        'det': [],
+        'vision': vision_msgs_available(),
     }
+    if out['vision']:   # else the tests that need it skip (or fail in CI)
+        from vision_msgs.msg import Detection3DArray
+        out['det'] = harness.collect(Detection3DArray, f'{NODE_FQN}/detections',
+                                     reliable_qos(200))
     assert _state(harness) == 'unconfigured', node.log()
     assert pub.get_subscription_count() == 0         # nothing subscribes before activate
     assert _lifecycle(harness, 'configure'), node.log()
@@ -94,6 +99,7 @@ def test_unknown_parameter_warns_with_the_closest_name(io: dict, node: NodeProce
 
 
 def test_detections_and_label_info(harness: Harness, node: NodeProcess, io: dict) -> None:
+    require_ros_extras('vision_msgs.msg')
     from point_gn_ros.pointcloud2 import decode_classifications
     from vision_msgs.msg import LabelInfo
 
@@ -141,8 +147,9 @@ def test_live_parameters_take_effect_or_are_refused(harness: Harness, node: Node
     cloud = to_sensor_frame(pick('test', ('chair',), 1)[0][0], rng)
     key = (7100, 0)
     _send(harness, io, cloud, key)
-    assert harness.spin_until(lambda: _answers(io, key, 'det'), 10.0)
-    assert len(_answers(io, key, 'det')[0].detections[0].results) == 3
+    if io['vision']:
+        assert harness.spin_until(lambda: _answers(io, key, 'det'), 10.0)
+        assert len(_answers(io, key, 'det')[0].detections[0].results) == 3
     from point_gn_ros.pointcloud2 import decode_classifications
     assert decode_classifications(_answers(io, key)[0])['topk_ids'].shape == (1, 3)
 
