@@ -248,5 +248,7 @@ def test_cleanup_frees_and_shutdown_exits(harness: Harness, node: NodeProcess, i
     assert _lifecycle(harness, 'cleanup')
     assert _state(harness) == 'unconfigured'
     assert 'bank released' in node.log()
+    assert _lifecycle(harness, 'configure')          # configurable again after cleanup
+    assert _state(harness) == 'inactive'
     assert node.stop() == 0
     assert 'Traceback' not in node.log()

@@ -417,14 +417,17 @@ class ClassifierNode(LifecycleNode):
             return
         header = job.item.payload.header
         s = self.settings
+        # The names of the recognizer that produced this answer (the worker swaps it only
+        # between batches; self.class_names may already be a newer bank's).
+        names = self._pipeline.class_names
         out = make_classifications(header, answer.centroids, answer.labels, answer.scores,
                                    answer.topk_ids, answer.topk_scores,
                                    np.asarray(job.segment_ids, dtype=np.int64), ti)
         self._pub_cls.publish(out)
         if self._pub_det is not None and self._pub_det.get_subscription_count():
-            self._pub_det.publish(make_detections(header, answer, self.class_names))
+            self._pub_det.publish(make_detections(header, answer, names))
         if self._pub_markers.get_subscription_count():   # nobody watching: skip the work
-            boxes = [object_box(c, class_name(self.class_names, int(lbl)), int(lbl), float(sc))
+            boxes = [object_box(c, class_name(names, int(lbl)), int(lbl), float(sc))
                      for c, lbl, sc in zip(job.clouds, answer.labels, answer.scores,
                                            strict=True)]
             self._pub_markers.publish(self._markers.build(ti, header, boxes,
