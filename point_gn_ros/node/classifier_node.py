@@ -114,6 +114,7 @@ class ClassifierNode(LifecycleNode):
         self._stop = threading.Event()
         self._timer: Any = None
         self._lifecycle_pubs: list[Any] = []
+        self._diagnostic_sources: list[Callable[[str], Any]] = []
         for make in extensions:
             self.add_managed_entity(make(self))
 
@@ -347,6 +348,10 @@ class ClassifierNode(LifecycleNode):
         finally:
             self._setting_class_names = False
 
+    def add_diagnostic_source(self, source: Callable[[str], Any]) -> None:
+        """source(node_name) -> diagnostic_msgs/DiagnosticStatus, added to every report."""
+        self._diagnostic_sources.append(source)
+
     def replace_recognizer(self, recognizer: Any) -> None:
         """Swap in another recognizer (e.g. a re-built bank); takes effect between batches.
 
@@ -467,6 +472,8 @@ class ClassifierNode(LifecycleNode):
             self._worker is not None and self._worker.is_alive(), self.recognizer.bank,
             self.recognizer.classifier.unknown_threshold, self._input_problems(),
             'active' if self._active else 'inactive')
+        arr.status += [source(self.get_fully_qualified_name())
+                       for source in self._diagnostic_sources]
         arr.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(arr)
 
