@@ -43,7 +43,9 @@ class Poisoned:
 
     def __init__(self, inner: Any) -> None:
         self.inner = inner
-        self.class_names = inner.class_names
+
+    def __getattr__(self, name: str) -> Any:     # bank, classifier, class_names, top_k ...
+        return getattr(self.inner, name)
 
     def classify_clouds(self, clouds: list[np.ndarray]) -> Any:
         if any(len(c) == self.POISON for c in clouds):
@@ -63,7 +65,7 @@ class Harness:
 
     def __init__(self, recognizer: Any, fail_publish: set[int] = frozenset(), **over: Any):
         self.stats = NodeStats(1)
-        self.queue: WorkQueue[Any] = WorkQueue(1, 10_000)
+        self.queue: WorkQueue[Any] = WorkQueue(1, 10_000, on_drop=self.stats.on_dropped)
         self.stop = threading.Event()
         self.warnings: list[str] = []
         self.pipeline = Pipeline(recognizer, _settings(**over), self.stats,
@@ -81,9 +83,9 @@ class Harness:
         self.stats.on_published(0, len(answer.labels), 0.0, None)
 
     def put(self, msg: Any) -> None:
+        """What the node's subscription callback does."""
         self.stats.on_received(0)
-        if self.queue.put(0, msg):
-            self.stats.on_dropped(0)
+        self.queue.put(0, msg)
 
     def run(self, msgs: list[Any]) -> Any:
         for m in msgs:
@@ -200,7 +202,7 @@ def test_identity_holds_at_every_instant_under_concurrency(recognizer: Any) -> N
     """Producer, worker (with drops and faults) and a reader snapshotting as fast as it can."""
     rng = np.random.default_rng(4)
     h = Harness(Poisoned(recognizer), fail_publish={9, 19})
-    h.queue = WorkQueue(1, 4)                        # small: the producer forces drops
+    h.queue = WorkQueue(1, 4, on_drop=h.stats.on_dropped)   # small: the producer drops
     msgs = [_msg(i, Poisoned.POISON if i % 13 == 0 else 40, rng) for i in range(120)]
     worker = threading.Thread(target=h.pipeline.serve, args=(h.queue, h.publish))
     worker.start()
@@ -217,9 +219,11 @@ def test_identity_holds_at_every_instant_under_concurrency(recognizer: Any) -> N
 
     r = threading.Thread(target=reader)
     r.start()
-    for m in msgs:
+    for i, m in enumerate(msgs):
         h.put(m)
-        time.sleep(0.001)
+        if i < 60:
+            time.sleep(0.01)    # paced: the worker keeps up and meets the poisoned clouds
+    # ... then the second half as one burst: the 4-deep queue must drop
     deadline = time.monotonic() + 60
     while h.stats.snapshot([0]).in_flight and time.monotonic() < deadline:
         time.sleep(0.01)

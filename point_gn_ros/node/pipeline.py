@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 
 from point_gn_ros.errors import DecodeError
-from point_gn_ros.node.params import Settings
+from point_gn_ros.node.frames import to_z_up
+from point_gn_ros.node.params import Settings, resolve_unknown_threshold
 from point_gn_ros.node.stats import NodeStats
 from point_gn_ros.node.work_queue import QueueItem, WorkQueue
 
@@ -39,6 +40,12 @@ class Job:
     item: QueueItem[Any]
     segment_ids: list[int]
     clouds: list[np.ndarray]
+    # (3, 3) rotation of the input frame into z-up (node/frames.py); None = already z-up.
+    rotation: np.ndarray | None = None
+
+    def model_clouds(self) -> list[np.ndarray]:
+        """The clouds as the classifier sees them: turned z-up (outputs keep the input frame)."""
+        return [to_z_up(c, self.rotation) for c in self.clouds]
 
 
 @dataclass
@@ -65,7 +72,9 @@ class Pipeline:
     """Turns queued PointCloud2 messages into Answers (thread: the worker).
 
     recognizer: a `point_gn_ros.recognizer.Recognizer`; warn(key, text): a rate-limited
-    logger; topic_names: display name per topic index (the node sets the resolved names).
+    logger; topic_names: display name per topic index (the node sets the resolved names);
+    frame_rotation(frame_id): rotation into z-up or None (node/frames.py UpConvention, or
+    later a tf2 lookup). `update()` swaps settings and/or the recognizer between batches.
     """
 
     def __init__(self, recognizer: Any, settings: Settings, stats: NodeStats,
@@ -73,10 +82,36 @@ class Pipeline:
         self.recognizer = recognizer
         self.settings = settings
         self.topic_names: list[str] = list(settings.input_topics)
+        self.frame_rotation: Callable[[str], np.ndarray | None] = lambda frame_id: None
         self._stats = stats
         self._warn = warn
         self._stop = stop
-        self._pending: set[int] = set()   # ids of this batch's messages not yet settled
+        self._unsettled: set[int] = set()   # ids of this batch's messages not yet settled
+        self._pending: tuple[Settings, Any] | None = None
+        self._pending_lock = threading.Lock()
+        self.update(settings, recognizer)
+        self._apply_pending()
+
+    def update(self, settings: Settings | None = None, recognizer: Any = None) -> None:
+        """Use new settings and/or another recognizer from the next batch on (any thread).
+
+        The swap happens between batches, so a batch is never classified half with the old
+        and half with the new. The caller has validated both (resolve_unknown_threshold).
+        """
+        with self._pending_lock:
+            old_s, old_r = self._pending or (self.settings, self.recognizer)
+            self._pending = (settings or old_s, recognizer or old_r)
+
+    def _apply_pending(self) -> None:
+        with self._pending_lock:
+            pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        settings, recognizer = pending
+        recognizer.top_k = settings.top_k
+        recognizer.classifier.unknown_threshold = resolve_unknown_threshold(
+            recognizer.bank, settings.unknown_threshold)
+        self.settings, self.recognizer = settings, recognizer
 
     @property
     def class_names(self) -> list[str]:
@@ -102,10 +137,10 @@ class Pipeline:
                     return
                 # A bug outside the per-message guards: what is still unsettled fails here.
                 for item in items:
-                    if id(item) in self._pending:
+                    if id(item) in self._unsettled:
                         self.fail(item, 'internal', exc)
             finally:
-                self._pending.clear()
+                self._unsettled.clear()
 
     def process(self, items: Sequence[QueueItem[Any]], publish: Callable[[Answer], None]
                 ) -> None:
@@ -114,7 +149,8 @@ class Pipeline:
         Each message is settled exactly once (answered, rejected or failed at a stage) unless
         the node stops first; a failure costs only the message it belongs to.
         """
-        self._pending = {id(item) for item in items}
+        self._apply_pending()
+        self._unsettled = {id(item) for item in items}
         jobs = []
         for item in items:
             try:
@@ -127,7 +163,7 @@ class Pipeline:
         if not jobs:
             return
         try:
-            results = self.classify([c for job in jobs for c in job.clouds])
+            results = self.classify([c for job in jobs for c in job.model_clouds()])
         except Exception as exc:  # noqa: BLE001 - retried message by message below
             if self._stop.is_set():
                 return
@@ -138,7 +174,7 @@ class Pipeline:
             # message is lost and its batch-mates are still answered.
             for job in jobs:
                 try:
-                    one = self.classify(job.clouds)
+                    one = self.classify(job.model_clouds())
                 except Exception as exc_one:  # noqa: BLE001 - counted against this message
                     if self._stop.is_set():
                         return
@@ -154,7 +190,7 @@ class Pipeline:
 
     def reject(self, item: QueueItem[Any], reason: str, detail: str) -> None:
         """Count a rejected message and warn (rate-limited, per topic)."""
-        self._pending.discard(id(item))
+        self._unsettled.discard(id(item))
         self._stats.on_rejected(reason)
         self._warn((item.topic_index,),
                    f'dropped a message on {self.topic_names[item.topic_index]}: {detail}')
@@ -162,7 +198,7 @@ class Pipeline:
     def fail(self, item: QueueItem[Any], stage: str, exc: Exception) -> None:
         """Count one message lost to an unexpected exception at `stage`, and warn."""
         what = f'{type(exc).__name__}: {exc}'
-        self._pending.discard(id(item))
+        self._unsettled.discard(id(item))
         self._stats.on_failed(stage, what)
         self._warn(('failed', stage), f'failed to {stage} a message on '
                                       f'{self.topic_names[item.topic_index]}: {what}')
@@ -175,7 +211,7 @@ class Pipeline:
             if not self._stop.is_set():
                 self.fail(answer.job.item, 'publish', exc)
         else:
-            self._pending.discard(id(answer.job.item))
+            self._unsettled.discard(id(answer.job.item))
 
     def prepare(self, item: QueueItem[Any]) -> Job | None:
         """Decode and split one message into object clouds; None if it is rejected.
@@ -195,7 +231,7 @@ class Pipeline:
                     self.reject(item, REJECT_TOO_FEW, f'{len(decoded)} finite point(s), '
                                                       f'min_points is {s.min_points}')
                     return None
-                return Job(item, [-1], [decoded.xyz])
+                return Job(item, [-1], [decoded.xyz], self._rotation(item))
             segments = split_segments(decoded, seg_field)
         except DecodeError as exc:
             self.reject(item, reason_key(str(exc)), str(exc))
@@ -214,7 +250,11 @@ class Pipeline:
                        f'objects: classified the largest {s.max_objects_per_message} '
                        '(max_objects_per_message)')
             big = [big[i] for i in chosen]
-        return Job(item, [seg_id for seg_id, _ in big], [xyz for _, xyz in big])
+        return Job(item, [seg_id for seg_id, _ in big], [xyz for _, xyz in big],
+                   self._rotation(item))
+
+    def _rotation(self, item: QueueItem[Any]) -> np.ndarray | None:
+        return self.frame_rotation(item.payload.header.frame_id)
 
     def classify(self, clouds: list[np.ndarray]) -> Results | None:
         """Labels, scores, top-k ids and scores of clouds, in chunks of max_batch.

@@ -10,6 +10,7 @@ answer the freshest view of the world, not a backlog.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 import threading
 import time
@@ -35,7 +36,9 @@ class WorkQueue(Generic[T]):
     timeout expires, or close() is called.
     """
 
-    def __init__(self, num_topics: int, maxlen: int) -> None:
+    def __init__(self, num_topics: int, maxlen: int,
+                 on_drop: Callable[[int], None] | None = None) -> None:
+        """on_drop(topic_index): called (under the queue's lock) for every dropped message."""
         if num_topics < 1:
             raise ValueError(f'num_topics must be >= 1, got {num_topics}')
         if maxlen < 1:
@@ -46,6 +49,7 @@ class WorkQueue(Generic[T]):
         self._cond = threading.Condition()
         self._closed = False
         self._next_topic = 0      # round-robin start, so no topic starves the others
+        self._on_drop = on_drop
 
     @property
     def num_topics(self) -> int:
@@ -64,9 +68,22 @@ class WorkQueue(Generic[T]):
             if dropped:
                 q.popleft()
                 self._dropped[topic_index] += 1
+                if self._on_drop is not None:
+                    self._on_drop(topic_index)
             q.append(item)
             self._cond.notify()
         return dropped
+
+    def resize(self, maxlen: int) -> None:
+        """New per-topic bound; the change itself drops nothing.
+
+        A longer queue shrinks to the bound as the worker takes from it (each put still
+        pushes out one oldest message), so every drop is still counted by put().
+        """
+        if maxlen < 1:
+            raise ValueError(f'maxlen must be >= 1, got {maxlen}')
+        with self._cond:
+            self._maxlen = maxlen
 
     def take(self, max_items: int, timeout: float | None = None) -> list[QueueItem[T]]:
         """Up to max_items messages, taken round-robin across topics, oldest first per topic.
