@@ -29,7 +29,9 @@ import numpy as np
 
 _SRC_DIR = Path(__file__).resolve().parent
 _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
-            'pgn_stage.c': ['-ffast-math']}
+            'pgn_stage.c': ['-ffast-math'],
+            'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
+            'pgn_peak.c': ['-ffast-math']}  # micro-benchmarks for the roofline table
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
 ABI_VERSION = 1
 _log = logging.getLogger(__name__)
@@ -186,6 +188,16 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_fps_from.argtypes = [p, p, p, i64, i64, i64, p, p]
     lib.pgn_knn.restype = None
     lib.pgn_knn.argtypes = [p, p, p, i64, p, p, p, i64, i64, p, p, p]
+    for name, args in (('pgn_peak_ops', [i64]), ('pgn_peak_exp', [i64]),
+                       ('pgn_peak_read', [p, i64, i64])):
+        getattr(lib, name).restype = ctypes.c_double
+        getattr(lib, name).argtypes = args
+    lib.pgn_scan_i8.restype = None
+    lib.pgn_scan_i8.argtypes = [p, i64, i64, p, p]
+    lib.pgn_top_m.restype = i64
+    lib.pgn_top_m.argtypes = [p, i64, i64, p, p]
+    lib.pgn_scan_f32.restype = None
+    lib.pgn_scan_f32.argtypes = [p, i64, p, i64, p, p]
 
 
 def load() -> ctypes.CDLL | None:
