@@ -31,7 +31,7 @@ _SRC_DIR = Path(__file__).resolve().parent
 _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_stage.c': ['-ffast-math'],
             'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
-            'pgn_peak.c': ['-ffast-math']}  # micro-benchmarks for the roofline table
+            'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
 ABI_VERSION = 1
 _log = logging.getLogger(__name__)

@@ -1,7 +1,8 @@
 /* Micro-benchmarks for the roofline table of `point_gn bench --profile`: what one core of
  * this machine can do at best, measured in the same run as the phases they bound.
  *
- * Compiled like pgn_stage.c (-O3 -march=native -ffast-math). Each function does a fixed
+ * Compiled without fast-math (which would let the compiler merge or reassociate the
+ * chains that are being timed). Each function does a fixed
  * amount of work and returns how much (lane operations, exps, bytes); the caller times
  * it with the calling thread's CPU clock. Results are returned so nothing is optimised
  * away. AVX-512 intrinsics where the compiler targets them (the encoder's own hot loops
@@ -21,10 +22,13 @@ static volatile float pgn_peak_sink;
 double pgn_peak_ops(int64_t iters) {
 #if defined(__AVX512F__)
     const __m512 m = _mm512_set1_ps(0.999999f), c = _mm512_set1_ps(1e-7f);
-    __m512 a0 = _mm512_set1_ps(1.0f), a1 = a0, a2 = a0, a3 = a0, a4 = a0, a5 = a0, a6 = a0,
-           a7 = a0;
-    __m512 s0 = _mm512_setzero_ps(), s1 = s0, s2 = s0, s3 = s0, s4 = s0, s5 = s0, s6 = s0,
-           s7 = s0;
+    /* distinct starting values, or the compiler merges identical chains */
+    __m512 a0 = _mm512_set1_ps(1.0f), a1 = _mm512_set1_ps(1.1f), a2 = _mm512_set1_ps(1.2f),
+           a3 = _mm512_set1_ps(1.3f), a4 = _mm512_set1_ps(1.4f), a5 = _mm512_set1_ps(1.5f),
+           a6 = _mm512_set1_ps(1.6f), a7 = _mm512_set1_ps(1.7f);
+    __m512 s0 = _mm512_set1_ps(0.1f), s1 = _mm512_set1_ps(0.2f), s2 = _mm512_set1_ps(0.3f),
+           s3 = _mm512_set1_ps(0.4f), s4 = _mm512_set1_ps(0.5f), s5 = _mm512_set1_ps(0.6f),
+           s6 = _mm512_set1_ps(0.7f), s7 = _mm512_set1_ps(0.8f);
     for (int64_t i = 0; i < iters; ++i) {
         a0 = _mm512_fmadd_ps(a0, m, c); s0 = _mm512_add_ps(s0, a7);
         a1 = _mm512_fmadd_ps(a1, m, c); s1 = _mm512_add_ps(s1, a0);
@@ -42,7 +46,7 @@ double pgn_peak_ops(int64_t iters) {
 #else
     float a[8][8], s[8][8];
     for (int j = 0; j < 8; ++j)
-        for (int l = 0; l < 8; ++l) { a[j][l] = 1.0f; s[j][l] = 0.0f; }
+        for (int l = 0; l < 8; ++l) { a[j][l] = 1.0f + 0.1f * j + 0.01f * l; s[j][l] = 0.0f; }
     for (int64_t i = 0; i < iters; ++i) {
         for (int j = 0; j < 8; ++j) {
 #pragma omp simd
