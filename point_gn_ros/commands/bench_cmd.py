@@ -72,14 +72,17 @@ def synthetic_bank(n: int, dims: int, seed: int = 0, classes: int = 40):
     """A clustered bank of unit rows: (n, dims) float32 features, (n,) int64 labels.
 
     Each class has a few modes; entries scatter around them, so nearest entries are
-    structured like a real bank's rather than uniform on the sphere.
+    structured like a real bank's rather than uniform on the sphere. Coordinate j has
+    scale (1 + j)^-0.6, a decaying spectrum like the shipped bank's PCA features (the
+    leading quarter of the coordinates holds ~90 % of the energy; 93 % in the bank).
     """
     import numpy as np
 
     rng = np.random.default_rng(seed)
+    scale = (1.0 + np.arange(dims, dtype=np.float32)) ** -0.6
     modes = rng.standard_normal((classes * 8, dims)).astype(np.float32)
     which = rng.integers(0, len(modes), n)
-    feats = modes[which] + rng.standard_normal((n, dims)).astype(np.float32) * 0.8
+    feats = (modes[which] + rng.standard_normal((n, dims)).astype(np.float32) * 0.8) * scale
     feats /= np.linalg.norm(feats, axis=1, keepdims=True)
     return feats, which % classes
 
@@ -281,7 +284,10 @@ def search_roofline_rows(peaks, quick: bool, repeats: int) -> list[Row]:
     feats, labels = synthetic_bank(n, dims, seed=3)
     index = BankIndex(feats, labels, num_classes=40)
     rng = np.random.default_rng(4)
-    queries = feats[rng.integers(0, n, 8)] + rng.normal(0, 0.02, (8, dims)).astype(np.float32)
+    queries = feats[rng.integers(0, n, 8)]
+    queries = queries + (rng.normal(0, 0.3, queries.shape)
+                         * (1.0 + np.arange(dims)) ** -0.6).astype(np.float32)
+    queries /= np.linalg.norm(queries, axis=1, keepdims=True)
     rows = []
     # floors: the float32 bank read once; the int8 codes read once plus the rescored rows
     exact_work = bank_scan_work(n, dims, 4.0)
@@ -301,6 +307,9 @@ def search_roofline_rows(peaks, quick: bool, repeats: int) -> list[Row]:
             best = min(best, (time.thread_time() - t0) / len(queries))
         floor = work.floor(peaks)
         rows.append(_roofline_row(what, best, floor, f'lone query, {n:,} x {dims} bank'))
+    agree = (index.scores(queries, 50.0).argmax(1) == index.exact_scores(queries, 50.0).argmax(1))
+    rows[-1]['note'] += (f'; coarse energy {index.coarse_energy:.2f}, same label as exact '
+                         f'{int(agree.sum())}/{len(agree)}')
     return rows
 
 

@@ -435,17 +435,42 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 #pragma omp simd
         for (int64_t i = 0; i < nv; ++i) vx[i] *= rx;
         TIC(7);
-        /* std of feature offsets: float partials per centre, double totals */
+        /* std of feature offsets: per-channel float partials over a centre's neighbours
+         * (4 rows a pass, no horizontal sum per row), reduced once per centre into
+         * double totals */
         double f1 = 0.0, f2 = 0.0;
-        for (int64_t c = 0; c < S; ++c) {
-            const float *cf = feat + cidx[c] * Dp;
-            float a1 = 0.0f, a2 = 0.0f;
-            for (int64_t t = 0; t < K; ++t) {
-                const float *row = feat + (int64_t)nb[c * K + t] * Dp;
-#pragma omp simd reduction(+:a1, a2) aligned(row, cf : 64)
-                for (int64_t d = 0; d < Dp; ++d) { float e = row[d] - cf[d]; a1 += e; a2 += e * e; }
+        {
+            float *s1 = mx, *s2 = sm;
+            for (int64_t c = 0; c < S; ++c) {
+                const float *cf = feat + cidx[c] * Dp;
+                const int32_t *nr = nb + c * K;
+                for (int64_t d = 0; d < Dp; ++d) { s1[d] = 0.0f; s2[d] = 0.0f; }
+                int64_t t = 0;
+                for (; t + 4 <= K; t += 4) {
+                    const float *r0 = feat + (int64_t)nr[t] * Dp, *r1 = feat + (int64_t)nr[t + 1] * Dp;
+                    const float *r2 = feat + (int64_t)nr[t + 2] * Dp, *r3 = feat + (int64_t)nr[t + 3] * Dp;
+#pragma omp simd aligned(r0, r1, r2, r3, cf, s1, s2 : 64)
+                    for (int64_t d = 0; d < Dp; ++d) {
+                        const float e0 = r0[d] - cf[d], e1 = r1[d] - cf[d];
+                        const float e2 = r2[d] - cf[d], e3 = r3[d] - cf[d];
+                        s1[d] += (e0 + e1) + (e2 + e3);
+                        s2[d] += (e0 * e0 + e1 * e1) + (e2 * e2 + e3 * e3);
+                    }
+                }
+                for (; t < K; ++t) {
+                    const float *r0 = feat + (int64_t)nr[t] * Dp;
+#pragma omp simd aligned(r0, cf, s1, s2 : 64)
+                    for (int64_t d = 0; d < Dp; ++d) {
+                        const float e0 = r0[d] - cf[d];
+                        s1[d] += e0;
+                        s2[d] += e0 * e0;
+                    }
+                }
+                float a1 = 0.0f, a2 = 0.0f;
+#pragma omp simd reduction(+:a1, a2) aligned(s1, s2 : 64)
+                for (int64_t d = 0; d < Dp; ++d) { a1 += s1[d]; a2 += s2[d]; }
+                f1 += a1; f2 += a2;
             }
-            f1 += a1; f2 += a2;
         }
         const double nf = (double)(S * K * D);
         double var = (f2 - f1 * f1 / nf) / (nf - 1.0);
