@@ -201,8 +201,11 @@ def classifier_rows(quick: bool, repeats: int, device: str) -> list[Row]:
 
 
 # Instrumented kernel slots (pgn_prof in pgn_stage.c) -> phase names of the roofline table.
-PROFILE_SLOTS = {0: 'FPS', 1: 'kNN', 7: 'feature std', 3: 'aggregation stage 1',
-                 4: 'aggregation stage 2', 5: 'aggregation stage 3', 6: 'aggregation stage 4'}
+PROFILE_SLOTS = {8: 'initial embedding', 0: 'FPS', 1: 'kNN', 7: 'feature std',
+                 3: 'aggregation stage 1', 4: 'aggregation stage 2', 5: 'aggregation stage 3',
+                 6: 'aggregation stage 4', 9: 'pooling', 10: 'offsets and their std',
+                 11: 'work space (allocate, zero)'}
+_PROF_LEN = 16  # length of pgn_prof
 
 
 def _roofline_row(what: str, seconds: float, floor: float | None, note: str = '') -> Row:
@@ -229,7 +232,7 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
 
     lib = kernels.load()
     try:
-        prof = (ctypes.c_double * 8).in_dll(lib, 'pgn_prof') if lib is not None else None
+        prof = (ctypes.c_double * _PROF_LEN).in_dll(lib, 'pgn_prof') if lib is not None else None
     except ValueError:
         prof = None
     if prof is None:
@@ -250,20 +253,20 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
     enc.encode(clouds[:1])
     best = None
     for _ in range(max(2, repeats)):
-        for i in range(8):
+        for i in range(_PROF_LEN):
             prof[i] = 0.0
         t0 = time.thread_time()  # batch on the calling thread (threads=1)
         enc.encode(clouds)
         total = time.thread_time() - t0
-        got = np.array([total] + [prof[i] for i in range(8)]) / len(clouds)
+        got = np.array([total] + [prof[i] for i in range(_PROF_LEN)]) / len(clouds)
         best = got if best is None else np.minimum(best, got)
     work = phase_work(enc.cfg)
     floors = {name: w.floor(peaks) for name, w in work.items()}
     for slot, name in PROFILE_SLOTS.items():
-        rows.append(_roofline_row(name, float(best[slot + 1]), floors[name]))
+        rows.append(_roofline_row(name, float(best[slot + 1]), floors.get(name)))
     named = sum(float(best[slot + 1]) for slot in PROFILE_SLOTS)
-    rows.append(_roofline_row('rest (offsets, pe tables, pooling)', float(best[0]) - named,
-                              None))
+    rows.append(_roofline_row('rest (offsets and their std, pe tables)',
+                              float(best[0]) - named, None))
     rows.append(_roofline_row('encoder, one cloud, all phases', float(best[0]),
                               sum(floors.values()), '1 thread, min over repeats'))
     rows += search_roofline_rows(peaks, quick, repeats)

@@ -23,7 +23,7 @@ int pgn_abi_version(void) { return 1; }
 
 #ifdef PGN_PROFILE
 #include <time.h>
-double pgn_prof[8];
+double pgn_prof[16];  /* per-phase thread CPU seconds; slots: bench_cmd.PROFILE_SLOTS */
 static double now(void) { struct timespec ts; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
 #define TIC(i) double _t##i = now()
 #define TOC(i, slot) pgn_prof[slot] += now() - _t##i
@@ -340,6 +340,7 @@ static int sep_ok(int64_t n, double q) {
 }
 
 static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cents, float *out) {
+    TIC(11);
     const int64_t N = cfg->num_points, D0 = cfg->init_dim;
     const float q = -0.5f / (cfg->sigma * cfg->sigma);
     const int64_t S1 = N / 2;
@@ -369,6 +370,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
     uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
     int rc = 0;
+    TOC(11, 11);
     if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
         || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE) {
         rc = -1;
@@ -377,11 +379,13 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     float *cc = vec, *mx = vec + VS, *sm = vec + 2 * VS;
     memcpy(xyz, xyz_in, sizeof(float) * (size_t)N * 3);
     /* initial embedding: (N, padded(D0)) */
+    TIC(8);
     {
         const int64_t n0 = D0 / 3, D0p = padded(D0);
         for (int64_t i = 0; i < N; ++i) gpe3(xyz + i * 3, cents, n0, q, featA + i * D0p);
         cents += n0;
     }
+    TOC(8, 8);
     float *feat = featA, *nfeat = featB;
     int64_t n = N, D = D0;
     float *o = out;
@@ -402,38 +406,39 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys);
         TOC(2, 1);
         TIC(3);
-        /* offsets and their unbiased std: float partials per centre, double totals,
-         * then a second (vectorised) pass for the squared deviations */
+        /* offsets (gathered rows of the AoS copy: no running sums, so no dependency
+         * chain per neighbour), then their unbiased std by two vectorised passes: float
+         * blocks, double totals */
         double s1 = 0.0, s2 = 0.0;
         for (int64_t c = 0; c < S; ++c) {
-            float p0 = 0.0f, p1 = 0.0f, p2 = 0.0f;
             const float qx = cx[c], qy = cy[c], qz = cz[c];
             const int32_t *nr = nb + c * K;
             float *v = vx + c * K * 3;
             for (int64_t t = 0; t < K; ++t) {
-                const int64_t j = nr[t];
-                const float a0 = x[j] - qx, a1 = y[j] - qy, a2 = z[j] - qz;
-                v[t * 3] = a0; v[t * 3 + 1] = a1; v[t * 3 + 2] = a2;
-                p0 += a0; p1 += a1; p2 += a2;
+                const float *pj = xyz + (int64_t)nr[t] * 3;
+                v[t * 3] = pj[0] - qx; v[t * 3 + 1] = pj[1] - qy; v[t * 3 + 2] = pj[2] - qz;
             }
-            s1 += (double)p0 + (double)p1 + (double)p2;
         }
         const int64_t nv = S * K * 3;
-        const float mvf = (float)(s1 / (double)nv);
-        {
+        for (int64_t i = 0; i < nv; i += 4096) {
+            const int64_t e = i + 4096 < nv ? i + 4096 : nv;
             float acc = 0.0f;
-            int64_t i = 0;
-            for (; i < nv; i += 4096) {  /* float blocks, double total */
-                const int64_t e = i + 4096 < nv ? i + 4096 : nv;
-                acc = 0.0f;
 #pragma omp simd reduction(+:acc)
-                for (int64_t u = i; u < e; ++u) { const float d = vx[u] - mvf; acc += d * d; }
-                s2 += acc;
-            }
+            for (int64_t u = i; u < e; ++u) acc += vx[u];
+            s1 += acc;
+        }
+        const float mvf = (float)(s1 / (double)nv);
+        for (int64_t i = 0; i < nv; i += 4096) {
+            const int64_t e = i + 4096 < nv ? i + 4096 : nv;
+            float acc = 0.0f;
+#pragma omp simd reduction(+:acc)
+            for (int64_t u = i; u < e; ++u) { const float d = vx[u] - mvf; acc += d * d; }
+            s2 += acc;
         }
         const float rx = (float)(1.0 / (sqrt(s2 / (double)(nv - 1)) + 1e-5));
 #pragma omp simd
         for (int64_t i = 0; i < nv; ++i) vx[i] *= rx;
+        TOC(3, 10);
         TIC(7);
         /* std of feature offsets: per-channel float partials over a centre's neighbours
          * (4 rows a pass, no horizontal sum per row), reduced once per centre into
@@ -477,7 +482,6 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         if (var < 0.0) var = 0.0;
         const float rf = (float)(1.0 / (sqrt(var) + 1e-5));
         TOC(7, 7);
-        TOC(3, 2);
         TIC(4);
         /* per-channel centre and axis of the pe channels (padding lanes: ignored) */
         for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
@@ -521,6 +525,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 #endif
         stage_aggregate(feat, D, cidx, nb, S, K, vx, rf, cc, ax, q, nfeat, pe, PS, mx, sm, fx);
         TOC(4, 3 + st);
+        TIC(9);
         cents += nc;
         /* global max and mean over centres */
         for (int64_t d = 0; d < D2; ++d) { o[d] = -INFINITY; o[D2 + d] = 0.0f; }
@@ -530,6 +535,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         }
         for (int64_t d = 0; d < D2; ++d) o[D2 + d] /= (float)S;
         o += 2 * D2;
+        TOC(9, 9);
         float *tmp = feat; feat = nfeat; nfeat = tmp;
         memcpy(xyz, cxyz, sizeof(float) * (size_t)S * 3);
         n = S;

@@ -96,12 +96,13 @@ def _stages(cfg: EncoderConfig):
 
 def phase_work(cfg: EncoderConfig) -> dict[str, Work]:
     """Minimal work per encoder phase for one cloud (keys: the profile's phase names)."""
-    fps = knn = std = 0.0
+    fps = knn = std = pool = 0.0
     std_bytes = 0.0
     agg: dict[str, Work] = {}
     for st, (n, s, k, d, nc) in enumerate(_stages(cfg), start=1):
         # FPS and kNN: a distance (3 sub, 3 mul, 2 add) per (centre, point), plus the
         # running min and arg-max (FPS) or one selection compare (kNN).
+        pool += s * 2 * d * 2.0  # max and sum over centres of the (S, 2D) output
         fps += s * n * 10.0
         knn += s * n * 9.0
         # offset std: sub, add, fma per gathered element; reads the gathered rows
@@ -113,8 +114,10 @@ def phase_work(cfg: EncoderConfig) -> dict[str, Work]:
         agg[f'aggregation stage {st}'] = Work(
             ops=s * k * d * (6.0 + 5.0), exps=s * k * 3.0 * (math.ceil(nc / 8) + 1),
             bytes=s * k * d * 4.0)
-    return {'FPS': Work(ops=fps), 'kNN': Work(ops=knn),
-            'feature std': Work(ops=std, bytes=std_bytes), **agg}
+    # initial embedding: one Gaussian (sub, mul, exp) per point and channel
+    init = Work(ops=cfg.num_points * cfg.init_dim * 2.0, exps=cfg.num_points * cfg.init_dim)
+    return {'initial embedding': init, 'FPS': Work(ops=fps), 'kNN': Work(ops=knn),
+            'feature std': Work(ops=std, bytes=std_bytes), **agg, 'pooling': Work(ops=pool)}
 
 
 def bank_scan_work(entries: int, dims: int, bytes_per_value: float) -> Work:
