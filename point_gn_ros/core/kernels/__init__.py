@@ -119,7 +119,7 @@ def _compile(cc: str, sources: dict[str, bytes], variant: str, out: Path) -> Non
                            check=True, capture_output=True, text=True)
             objs.append(str(obj))
         tmp_lib = Path(tmp) / out.name
-        subprocess.run([cc, '-shared', '-o', str(tmp_lib), *objs, '-lm'],
+        subprocess.run([cc, '-shared', '-pthread', '-o', str(tmp_lib), *objs, '-lm'],
                        check=True, capture_output=True, text=True)
         out.parent.mkdir(parents=True, exist_ok=True)
         staged = out.with_name(f'{out.name}.{os.getpid()}.tmp')
@@ -182,6 +182,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_abi_version.restype = ctypes.c_int
     lib.pgn_encode.restype = ctypes.c_int
     lib.pgn_encode.argtypes = [p, i64, i64, i64, i64, i64, f32, p, i64, p]
+    lib.pgn_encode_lone.restype = ctypes.c_int
+    lib.pgn_encode_lone.argtypes = [p, i64, i64, i64, i64, f32, p, i64, p]
     lib.pgn_fps.restype = None
     lib.pgn_fps.argtypes = [p, p, p, p, i64, i64, p, p]
     lib.pgn_fps_from.restype = None

@@ -6,6 +6,9 @@
  * function of one cloud, whatever the batch or thread, so batches are invariant.
  */
 #include <math.h>
+#include <pthread.h>
+#include <sched.h>
+#include <stdatomic.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -339,7 +342,106 @@ static int sep_ok(int64_t n, double q) {
            && 7.0 * h * sqrt(aq) < 3.8;
 }
 
-static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cents, float *out) {
+/* A lone cloud on two threads: the caller and one helper share each stage's
+ * aggregation by chunks of centres, claimed from an atomic counter. Every centre's
+ * result depends on that centre only, so the split never changes a bit. The caller
+ * works through the chunks itself and waits only for chunks the helper has claimed:
+ * a helper that is not scheduled in time costs nothing but its wake-up. */
+typedef struct agg_job {
+    const float *feat;
+    int64_t D, S, K, D2p, PS, nchunks;
+    const int64_t *cidx;
+    const int32_t *nb;
+    const float *vx, *cc;
+    const int32_t *ax;
+    float r, q;
+    float *out;
+    sep_t fx[2];          /* per thread: its own A / E scratch */
+    int use_fx, d32;
+    float *pe[2], *mx[2], *sm[2];
+#if defined(__AVX512F__)
+    const float *ccs;
+    const __mmask16 *m1, *m2;
+    float sc;
+#endif
+} agg_job;
+
+static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
+    const int64_t c0 = j->S * chunk / j->nchunks, c1 = j->S * (chunk + 1) / j->nchunks;
+    if (c1 <= c0) return;
+    const int64_t *cidx = j->cidx + c0;
+    const int32_t *nb = j->nb + c0 * j->K;
+    const float *vx = j->vx + c0 * j->K * 3;
+    float *out = j->out + c0 * j->D2p;
+#if defined(__AVX512F__) && !defined(PGN_NO_D32)
+    if (j->d32) {
+        aggregate_d32_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs, j->m1,
+                             j->m2, j->sc, out, j->mx[tid]);
+        return;
+    }
+#endif
+    stage_aggregate(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cc, j->ax, j->q, out,
+                    j->pe[tid], j->PS, j->mx[tid], j->sm[tid], j->use_fx ? &j->fx[tid] : NULL);
+}
+
+typedef struct {
+    pthread_mutex_t mu;
+    pthread_cond_t cv;
+    int64_t gen;          /* job generation, under mu */
+    int quit;
+    agg_job *job;
+    _Atomic uint64_t next;  /* (generation << 32) | next unclaimed chunk */
+    _Atomic int64_t done;   /* chunks of the current job finished */
+} par_t;
+
+/* Claim and run chunks of job generation gen until none is left. */
+static void par_work(par_t *p, agg_job *job, uint64_t gen, int tid) {
+    for (;;) {
+        uint64_t v = atomic_load(&p->next);
+        if ((v >> 32) != gen || (int64_t)(v & 0xffffffffu) >= job->nchunks) return;
+        if (!atomic_compare_exchange_weak(&p->next, &v, v + 1)) continue;
+        agg_chunk(job, tid, (int64_t)(v & 0xffffffffu));
+        atomic_fetch_add(&p->done, 1);
+    }
+}
+
+static void *par_helper(void *arg) {
+    par_t *p = arg;
+    int64_t seen = 0;
+    pthread_mutex_lock(&p->mu);
+    for (;;) {
+        while (p->gen == seen && !p->quit) pthread_cond_wait(&p->cv, &p->mu);
+        if (p->quit) break;
+        seen = p->gen;
+        agg_job *job = p->job;
+        pthread_mutex_unlock(&p->mu);
+        par_work(p, job, (uint64_t)seen, 1);
+        pthread_mutex_lock(&p->mu);
+    }
+    pthread_mutex_unlock(&p->mu);
+    return NULL;
+}
+
+/* Run all chunks of job, with the helper when there is one. */
+static void par_run(par_t *p, agg_job *job) {
+    if (!p) {
+        for (int64_t i = 0; i < job->nchunks; ++i) agg_chunk(job, 0, i);
+        return;
+    }
+    pthread_mutex_lock(&p->mu);
+    const uint64_t gen = (uint64_t)++p->gen;
+    p->job = job;
+    atomic_store(&p->done, 0);
+    atomic_store(&p->next, gen << 32);
+    pthread_cond_signal(&p->cv);
+    pthread_mutex_unlock(&p->mu);
+    par_work(p, job, gen, 0);
+    for (int spin = 0; atomic_load(&p->done) < job->nchunks; ++spin)
+        if (spin > 64) sched_yield();  /* only chunks the helper is running are left */
+}
+
+static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cents, float *out,
+                      par_t *par) {
     TIC(11);
     const int64_t N = cfg->num_points, D0 = cfg->init_dim;
     const float q = -0.5f / (cfg->sigma * cfg->sigma);
@@ -367,12 +469,19 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     float *sepT = xalloc(sizeof(float) * (size_t)Mmax * 8);
     float *sepA = xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax);
     float *sepE = xalloc(sizeof(float) * (size_t)K1 * 3 * 8);
+    /* the helper's own scratch (pe buffers, mx / sm, separable A / E) */
+    const int npar = par ? 2 : 1;
+    float *pe2 = par ? xalloc(sizeof(float) * (size_t)PS * 4) : NULL;
+    float *vec2 = par ? xalloc(sizeof(float) * (size_t)VS * 2) : NULL;
+    float *sepA2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax) : NULL;
+    float *sepE2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * 8) : NULL;
     int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
     uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
     int rc = 0;
     TOC(11, 11);
     if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
-        || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE) {
+        || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE
+        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2))) {
         rc = -1;
         goto done;
     }
@@ -507,12 +616,29 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             fxs.E = sepE;
             fx = &fxs;
         }
+        agg_job job;
+        memset(&job, 0, sizeof(job));
+        job.feat = feat; job.D = D; job.S = S; job.K = K; job.D2p = D2p; job.PS = PS;
+        job.cidx = cidx; job.nb = nb; job.vx = vx; job.cc = cc; job.ax = ax; job.r = rf;
+        job.q = q; job.out = nfeat;
+        /* 16 chunks on two threads: a claimed chunk is short, so the caller never waits
+         * long for a helper that was descheduled mid-chunk */
+        job.nchunks = par ? (S < 16 ? S : 16) : 1;
+        job.pe[0] = pe; job.mx[0] = mx; job.sm[0] = sm;
+        job.pe[1] = pe2; job.mx[1] = vec2; job.sm[1] = vec2 ? vec2 + VS : NULL;
+        if (fx) {
+            job.use_fx = 1;
+            job.fx[0] = *fx;
+            job.fx[1] = *fx;
+            job.fx[1].A = sepA2;
+            job.fx[1].E = sepE2;
+        }
 #if defined(__AVX512F__) && !defined(PGN_NO_D32)
+        const float sc = sqrtf(-q * 1.44269504088896341f);
+        float ccs[64];
+        __mmask16 m1[4] = {0}, m2[4] = {0};
         if (!fx && D > 16 && D <= 32) {
             /* register-resident path; pe lanes: channels [0, 32) and [D, D + 32) */
-            const float sc = sqrtf(-q * 1.44269504088896341f);
-            float ccs[64];
-            __mmask16 m1[4] = {0}, m2[4] = {0};
             for (int i = 0; i < 64; ++i) {
                 const int64_t ch = i < 32 ? i : D + (i - 32);
                 const int axis = ch < D2 ? (int)(ch / nc) : 0;
@@ -520,10 +646,11 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
                 if (axis >= 1) m1[i / 16] |= (__mmask16)(1u << (i % 16));
                 if (axis >= 2) m2[i / 16] |= (__mmask16)(1u << (i % 16));
             }
-            aggregate_d32_avx512(feat, D, cidx, nb, S, K, vx, rf, ccs, m1, m2, sc, nfeat, mx);
-        } else
+            job.d32 = 1;
+            job.ccs = ccs; job.m1 = m1; job.m2 = m2; job.sc = sc;
+        }
 #endif
-        stage_aggregate(feat, D, cidx, nb, S, K, vx, rf, cc, ax, q, nfeat, pe, PS, mx, sm, fx);
+        par_run(par, &job);
         TOC(4, 3 + st);
         TIC(9);
         cents += nc;
@@ -545,6 +672,7 @@ done:
     free(featA); free(featB); free(xyz); free(cxyz); free(soa); free(scratch); free(vx);
     free(vec); free(pe); free(ax); free(cidx); free(nb); free(keys);
     free(sepb); free(sepT); free(sepA); free(sepE);
+    free(pe2); free(vec2); free(sepA2); free(sepE2);
     return rc;
 }
 
@@ -554,8 +682,36 @@ int pgn_encode(const float *xyz, int64_t count, int64_t num_points, int64_t init
                float *out) {
     pgn_cfg cfg = {num_points, init_dim, stages, k, sigma};
     for (int64_t b = 0; b < count; ++b) {
-        int rc = encode_one(xyz + b * num_points * 3, &cfg, cents, out + b * feature_dim);
+        int rc = encode_one(xyz + b * num_points * 3, &cfg, cents, out + b * feature_dim, NULL);
         if (rc) return rc;
     }
     return 0;
+}
+
+/* One cloud on the calling thread plus a helper thread (started and joined here: ~50 us)
+ * that shares the aggregation; bit-identical to pgn_encode. Falls back to one thread
+ * when the helper cannot start. Returns 0, or -1 when out of memory. */
+int pgn_encode_lone(const float *xyz, int64_t num_points, int64_t init_dim, int64_t stages,
+                    int64_t k, float sigma, const float *cents, int64_t feature_dim, float *out) {
+    (void)feature_dim;
+    pgn_cfg cfg = {num_points, init_dim, stages, k, sigma};
+    par_t p;
+    memset(&p, 0, sizeof(p));
+    pthread_mutex_init(&p.mu, NULL);
+    pthread_cond_init(&p.cv, NULL);
+    atomic_init(&p.next, 0);
+    atomic_init(&p.done, 0);
+    pthread_t th;
+    const int started = pthread_create(&th, NULL, par_helper, &p) == 0;
+    const int rc = encode_one(xyz, &cfg, cents, out, started ? &p : NULL);
+    if (started) {
+        pthread_mutex_lock(&p.mu);
+        p.quit = 1;
+        pthread_cond_signal(&p.cv);
+        pthread_mutex_unlock(&p.mu);
+        pthread_join(th, NULL);
+    }
+    pthread_cond_destroy(&p.cv);
+    pthread_mutex_destroy(&p.mu);
+    return rc;
 }
