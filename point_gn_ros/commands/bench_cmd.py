@@ -135,12 +135,40 @@ def encoder_rows(quick: bool, repeats: int, device: str, threads: int | None) ->
             for i in range(0, total, batch):
                 enc.encode(clouds[i % 64:i % 64 + batch])
 
+        cpu0 = time.process_time()
         rate = total / _median_time(run, repeats)
+        cpu = (time.process_time() - cpu0) / (total * repeats)
         rows.append(dict(section='encoder', what=f'fast encoder, batch {batch}', value=rate,
                          unit='clouds/s', note=f'{rate / naive_rate:.0f}x naive; '
-                                               f'{1e3 / rate:.2f} ms per cloud'))
+                                               f'{1e3 / rate:.2f} ms per cloud; process CPU '
+                                               f'{cpu * 1e3:.2f} ms per cloud'))
     enc.close()
+    # A lone cloud on 1 and on 2 threads (the automatic choice picks 2 only while the load
+    # average leaves a CPU spare); wall time is what changes, CPU time shows the overhead.
+    total = 8 if quick else 32
+    for lone in (1, 2):
+        one = PointGNEncoder(cfg, device=device, threads=threads, lone_threads=lone)
+
+        def run_lone(one: PointGNEncoder = one) -> None:
+            for i in range(total):
+                one.encode(clouds[i % 64:i % 64 + 1])
+
+        run_lone()
+        cpu0 = time.process_time()
+        t = _median_time(run_lone, repeats) / total
+        cpu = (time.process_time() - cpu0) / (total * repeats)
+        rows.append(dict(section='encoder', what=f'one cloud, lone_threads={lone}',
+                         value=t * 1e3, unit='ms', note=f'process CPU {cpu * 1e3:.2f} ms; '
+                                                        f'load average {_load():.1f}'))
     return rows
+
+
+def _load() -> float:
+    import os
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return float('nan')
 
 
 def resample_rows(quick: bool, repeats: int) -> list[Row]:
@@ -359,6 +387,8 @@ def _bench(args: argparse.Namespace) -> int:
     if args.profile:
         sections.append(lambda: profile_rows(args.quick, repeats))
     if not args.json:
+        print(f'# {platform.processor() or platform.machine()}, {threads} threads, load average '
+              f'{_load():.1f} at start', flush=True)
         print(TABLE_HEADER, flush=True)
     for section in sections:
         got = section()
@@ -367,7 +397,8 @@ def _bench(args: argparse.Namespace) -> int:
             print(format_rows(got), flush=True)  # as each section finishes
     if args.json:
         info = dict(machine=platform.processor() or platform.machine(), threads=threads,
-                    torch=torch.__version__, repeats=repeats, quick=args.quick)
+                    torch=torch.__version__, repeats=repeats, quick=args.quick,
+                    load_average_end=_load())
         json.dump(dict(info=info, rows=rows), sys.stdout, indent=1)
         print()
     return 0
