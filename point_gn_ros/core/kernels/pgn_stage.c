@@ -334,6 +334,92 @@ static void aggregate_d32_avx512(const float *feat, int64_t D, const int64_t *ci
 }
 #endif
 
+#if defined(__AVX512F__) && defined(__AVX512VL__)
+/* Separable stages with AVX-512: pe is never stored. The 2D pe channels are walked as
+ * the (axis, block) groups of 8 of the separable form, channel a n + 8 m + l, so a
+ * group's pe for neighbour t is one broadcast times a vector:
+ * A[t, a, m] * (T[m, 0..8) * P[t, a]^(0..8)), the powers by masked multiplies of
+ * P, P^2, P^4 (the same products as sep_prepare's E, so the same values). Channel ch
+ * aggregates ((row[ch] - cf[ch]) r + pe) pe for ch < D and (cf[ch - D] + pe) pe
+ * above (G holds cf[ch] / cf[ch - D]); lanes past an axis's n centres are masked off.
+ * mx, sm, G: 2D + 16 floats of scratch. Four neighbours a pass, like stage_aggregate. */
+static inline __attribute__((always_inline)) void sep_pass(
+        const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
+        int64_t D, const float *G, float r, float *mx, float *sm) {
+    const int64_t n = fx->n, M = fx->M;
+    const __m256 one = _mm256_set1_ps(1.0f), vr = _mm256_set1_ps(r);
+    for (int a = 0; a < 3; ++a) {
+        __m256 e[4];
+        for (int i = 0; i < nt; ++i) {
+            const int64_t ta = 3 * (t0 + i) + a;
+            __m256 v = one;
+            v = _mm256_mask_mul_ps(v, 0xAA, v, _mm256_set1_ps(fx->E[1 * nta + ta]));
+            v = _mm256_mask_mul_ps(v, 0xCC, v, _mm256_set1_ps(fx->E[2 * nta + ta]));
+            e[i] = _mm256_mask_mul_ps(v, 0xF0, v, _mm256_set1_ps(fx->E[4 * nta + ta]));
+        }
+        for (int64_t m = 0; m < M; ++m) {
+            const int64_t ch = a * n + 8 * m;
+            const int64_t nv = n - 8 * m < 8 ? n - 8 * m : 8;
+            const __mmask8 valid = (__mmask8)((1u << nv) - 1u);
+            const int64_t no = D - ch < 0 ? 0 : (D - ch > 8 ? 8 : D - ch);
+            const __mmask8 off = (__mmask8)(((1u << no) - 1u) & valid);  /* ch + l < D */
+            const __m256 T = _mm256_loadu_ps(fx->T + 8 * m);
+            const __m256 g = _mm256_loadu_ps(G + ch);
+            __m256 w[4];
+            for (int i = 0; i < nt; ++i) {
+                const __m256 am = _mm256_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]);
+                const __m256 pe = _mm256_mul_ps(am, _mm256_mul_ps(T, e[i]));
+                __m256 f = g;
+                if (off) {
+                    const __m256 row = _mm256_maskz_loadu_ps(off, rows[i] + ch);
+                    f = _mm256_mask_blend_ps(off, g,
+                                             _mm256_fmadd_ps(_mm256_sub_ps(row, g), vr, pe));
+                    w[i] = _mm256_mul_ps(_mm256_mask_blend_ps(off, _mm256_add_ps(f, pe), f), pe);
+                } else {
+                    w[i] = _mm256_mul_ps(_mm256_add_ps(f, pe), pe);
+                }
+            }
+            __m256 wm = w[0], ws = w[0];
+            if (nt == 4) {
+                wm = _mm256_max_ps(_mm256_max_ps(w[0], w[1]), _mm256_max_ps(w[2], w[3]));
+                ws = _mm256_add_ps(_mm256_add_ps(w[0], w[1]), _mm256_add_ps(w[2], w[3]));
+            }
+            _mm256_mask_storeu_ps(mx + ch, valid, _mm256_max_ps(wm, _mm256_loadu_ps(mx + ch)));
+            _mm256_mask_storeu_ps(sm + ch, valid, _mm256_add_ps(_mm256_loadu_ps(sm + ch), ws));
+        }
+    }
+}
+
+static void aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
+                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                                 float r, float *out, float *mx, float *sm, float *G,
+                                 sep_t *fx) {
+    const int64_t Dp = padded(D), D2 = 2 * D, D2p = padded(D2), nta = 3 * K;
+    const float invk = 1.0f / (float)K;
+    for (int64_t c = 0; c < S; ++c) {
+        const float *cf = feat + cidx[c] * Dp;
+        const int32_t *nr = nb + c * K;
+        for (int64_t d = 0; d < D; ++d) { G[d] = cf[d]; G[D + d] = cf[d]; }
+        for (int64_t d = D2; d < D2 + 16; ++d) G[d] = 0.0f;
+        for (int64_t d = 0; d < D2 + 16; ++d) { mx[d] = -INFINITY; sm[d] = 0.0f; }
+        sep_prepare(fx, vx + c * K * 3, K);
+        int64_t t = 0;
+        for (; t + 4 <= K; t += 4) {
+            const float *rows[4] = {feat + (int64_t)nr[t] * Dp, feat + (int64_t)nr[t + 1] * Dp,
+                                    feat + (int64_t)nr[t + 2] * Dp, feat + (int64_t)nr[t + 3] * Dp};
+            sep_pass(rows, 4, t, nta, fx, D, G, r, mx, sm);
+        }
+        for (; t < K; ++t) {
+            const float *rows[1] = {feat + (int64_t)nr[t] * Dp};
+            sep_pass(rows, 1, t, nta, fx, D, G, r, mx, sm);
+        }
+        float *o = out + c * D2p;
+        for (int64_t d = 0; d < D2; ++d) o[d] = gelu(mx[d] + sm[d] * invk);
+        for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
+    }
+}
+#endif
+
 /* Whether separable Gaussians are safe in float for n centres in (-1, 1) and this q
  * (see sep_t), and worth it (n >= SEP_MIN_N). */
 static int sep_ok(int64_t n, double q) {
@@ -377,6 +463,13 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     if (j->d32) {
         aggregate_d32_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs, j->m1,
                              j->m2, j->sc, out, j->mx[tid]);
+        return;
+    }
+#endif
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
+    if (j->use_fx) {
+        aggregate_sep_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
+                             j->sm[tid], j->pe[tid], &j->fx[tid]);
         return;
     }
 #endif
