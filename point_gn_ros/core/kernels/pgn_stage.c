@@ -107,6 +107,23 @@ typedef struct {
     float *E;         /* (K * 3, 8) scratch */
 } sep_t;
 
+#if defined(__AVX512F__)
+/* 2^-t for t >= 0, 16 lanes: t = k - f with k rounded, |f| <= 1/2, a degree-6
+ * polynomial for 2^f (relative error < 2e-7) and scalef for the exact 2^-k. */
+static inline __m512 exp2_neg_avx512(__m512 t) {
+    const __m512 k = _mm512_roundscale_ps(t, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const __m512 f = _mm512_sub_ps(k, t);
+    __m512 p = _mm512_fmadd_ps(_mm512_set1_ps(0.00015403530393381608f), f,
+                               _mm512_set1_ps(0.0013333558146428443f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(0.009618129107628477f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(0.05550410866482158f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(0.2402265069591007f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(0.6931471805599453f));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(1.0f));
+    return _mm512_scalef_ps(p, _mm512_sub_ps(_mm512_setzero_ps(), k));
+}
+#endif
+
 /* A and E for one centre's K neighbours, v (K, 3) normalised offsets; stored
  * neighbour-axis minor (A[m][ta], E[l][ta], ta = 3 t + a) so every loop here runs
  * vectorised across the 3 K (t, a) pairs. */
@@ -119,6 +136,20 @@ static void sep_prepare(sep_t *fx, const float *v, int64_t K) {
     for (int64_t m = 0; m < M; ++m) {
         const float bm = fx->b[m], q = fx->q;
         float *A = fx->A + m * nta;
+#if defined(__AVX512F__)
+        /* 16 lanes: 2^-(u^2 |q| log2 e) by rounding + polynomial + scalef (as in
+         * aggregate_d32_avx512), the exponent clamped like exp_fast's -87 */
+        const __m512 vb = _mm512_set1_ps(bm), vs = _mm512_set1_ps(-q * 1.44269504088896341f);
+        const __m512 tmax = _mm512_set1_ps(87.0f * 1.44269504088896341f);
+        for (int64_t i = 0; i < nta; i += 16) {
+            const __mmask16 k = nta - i >= 16 ? (__mmask16)0xffff
+                                              : (__mmask16)((1u << (nta - i)) - 1u);
+            const __m512 u = _mm512_sub_ps(vb, _mm512_maskz_loadu_ps(k, w + i));
+            const __m512 t = _mm512_min_ps(_mm512_mul_ps(_mm512_mul_ps(u, u), vs), tmax);
+            _mm512_mask_storeu_ps(A + i, k, exp2_neg_avx512(t));
+        }
+        continue;
+#endif
 #pragma omp simd
         for (int64_t i = 0; i < nta; ++i) {
             const float u = bm - w[i];
