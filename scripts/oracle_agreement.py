@@ -2,6 +2,7 @@
 """Fast encoder vs the naive oracle on a whole dataset split: features and labels.
 
 usage: scripts/oracle_agreement.py [--bank BANK] [--data DIR] [--split test] [--limit N]
+       [--torch-threads T]
 
 Encodes every cloud with both encoders (configured from the bank), reports the largest
 per-cloud relative feature difference and how many labels differ.
@@ -29,13 +30,16 @@ def main() -> None:
                                           'datasets' / 'modelnet40_1024'))
     ap.add_argument('--split', default='test')
     ap.add_argument('--limit', type=int, default=0, help='first N clouds only (0 = all)')
+    ap.add_argument('--torch-threads', type=int, default=1,
+                    help='torch threads for the oracle (default 1: on a shared machine more '
+                         'threads spin in OpenMP and run slower)')
     args = ap.parse_args()
 
     bank = FeatureBank.load(args.bank)
     ds = open_dataset(args.data, split=args.split)
     n = len(ds) if args.limit <= 0 else min(args.limit, len(ds))
     clouds = [ds[i][0] for i in range(n)]
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.torch_threads)
     times, feats = {}, {}
     for name, naive in (('fast', False), ('oracle', True)):
         enc = make_encoder(bank.config, naive=naive)

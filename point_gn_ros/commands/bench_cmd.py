@@ -293,8 +293,7 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
     for slot, name in PROFILE_SLOTS.items():
         rows.append(_roofline_row(name, float(best[slot + 1]), floors.get(name)))
     named = sum(float(best[slot + 1]) for slot in PROFILE_SLOTS)
-    rows.append(_roofline_row('rest (offsets and their std, pe tables)',
-                              float(best[0]) - named, None))
+    rows.append(_roofline_row('rest (copies, pe tables, calls)', float(best[0]) - named, None))
     rows.append(_roofline_row('encoder, one cloud, all phases', float(best[0]),
                               sum(floors.values()), '1 thread, min over repeats'))
     rows += search_roofline_rows(peaks, quick, repeats)
