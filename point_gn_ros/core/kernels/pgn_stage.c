@@ -457,6 +457,67 @@ static void aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *ci
 }
 #endif
 
+#if defined(__AVX512F__)
+/* Sums of e = row[d] - cf[d] and e^2 over one centre's K neighbour rows, channels
+ * [0, Dp), with the per-channel partials in registers: chunks of up to 4 vectors, two
+ * sets of accumulators (even / odd neighbours) so the add chains overlap. */
+#define PGN_STDCHUNK(NV)                                                                 \
+    static inline void stdchunk##NV(const float *feat, int64_t Dp, const int32_t *nr,    \
+                                    int64_t K, const float *cf, __m512 *t1, __m512 *t2) { \
+        __m512 a1[2][NV], a2[2][NV], g[NV];                                              \
+        for (int v = 0; v < NV; ++v) {                                                   \
+            g[v] = _mm512_load_ps(cf + 16 * v);                                          \
+            a1[0][v] = a1[1][v] = a2[0][v] = a2[1][v] = _mm512_setzero_ps();             \
+        }                                                                                \
+        int64_t t = 0;                                                                   \
+        for (; t + 2 <= K; t += 2) {                                                     \
+            const float *r0 = feat + (int64_t)nr[t] * Dp;                                \
+            const float *r1 = feat + (int64_t)nr[t + 1] * Dp;                            \
+            for (int v = 0; v < NV; ++v) {                                               \
+                const __m512 e0 = _mm512_sub_ps(_mm512_load_ps(r0 + 16 * v), g[v]);      \
+                const __m512 e1 = _mm512_sub_ps(_mm512_load_ps(r1 + 16 * v), g[v]);      \
+                a1[0][v] = _mm512_add_ps(a1[0][v], e0);                                  \
+                a2[0][v] = _mm512_fmadd_ps(e0, e0, a2[0][v]);                            \
+                a1[1][v] = _mm512_add_ps(a1[1][v], e1);                                  \
+                a2[1][v] = _mm512_fmadd_ps(e1, e1, a2[1][v]);                            \
+            }                                                                            \
+        }                                                                                \
+        if (t < K) {                                                                     \
+            const float *r0 = feat + (int64_t)nr[t] * Dp;                                \
+            for (int v = 0; v < NV; ++v) {                                               \
+                const __m512 e0 = _mm512_sub_ps(_mm512_load_ps(r0 + 16 * v), g[v]);      \
+                a1[0][v] = _mm512_add_ps(a1[0][v], e0);                                  \
+                a2[0][v] = _mm512_fmadd_ps(e0, e0, a2[0][v]);                            \
+            }                                                                            \
+        }                                                                                \
+        for (int v = 0; v < NV; ++v) {                                                   \
+            *t1 = _mm512_add_ps(*t1, _mm512_add_ps(a1[0][v], a1[1][v]));                 \
+            *t2 = _mm512_add_ps(*t2, _mm512_add_ps(a2[0][v], a2[1][v]));                 \
+        }                                                                                \
+    }
+PGN_STDCHUNK(1)
+PGN_STDCHUNK(2)
+PGN_STDCHUNK(3)
+PGN_STDCHUNK(4)
+#undef PGN_STDCHUNK
+
+static void std_centre_avx512(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,
+                              const float *cf, float *a1, float *a2) {
+    __m512 t1 = _mm512_setzero_ps(), t2 = t1;
+    int64_t v = 0;
+    const int64_t nv = Dp / 16;
+    for (; v + 4 <= nv; v += 4) stdchunk4(feat + 16 * v, Dp, nr, K, cf + 16 * v, &t1, &t2);
+    switch (nv - v) {
+        case 3: stdchunk3(feat + 16 * v, Dp, nr, K, cf + 16 * v, &t1, &t2); break;
+        case 2: stdchunk2(feat + 16 * v, Dp, nr, K, cf + 16 * v, &t1, &t2); break;
+        case 1: stdchunk1(feat + 16 * v, Dp, nr, K, cf + 16 * v, &t1, &t2); break;
+        default: break;
+    }
+    *a1 = _mm512_reduce_add_ps(t1);
+    *a2 = _mm512_reduce_add_ps(t2);
+}
+#endif
+
 /* Whether separable Gaussians are safe in float for n centres in (-1, 1) and this q
  * (see sep_t), and worth it (n >= SEP_MIN_N). */
 static int sep_ok(int64_t n, double q) {
@@ -688,6 +749,14 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             for (int64_t c = 0; c < S; ++c) {
                 const float *cf = feat + cidx[c] * Dp;
                 const int32_t *nr = nb + c * K;
+#if defined(__AVX512F__)
+                {
+                    float a1, a2;
+                    std_centre_avx512(feat, Dp, nr, K, cf, &a1, &a2);
+                    f1 += a1; f2 += a2;
+                    continue;
+                }
+#endif
                 for (int64_t d = 0; d < Dp; ++d) { s1[d] = 0.0f; s2[d] = 0.0f; }
                 int64_t t = 0;
                 for (; t + 4 <= K; t += 4) {
