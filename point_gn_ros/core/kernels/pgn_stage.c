@@ -98,7 +98,8 @@ static void *xalloc(size_t bytes) {
  * every factor and partial product stays inside float range and an underflowing A_m
  * only ever drops values below e^-30. */
 typedef struct {
-    int64_t n, M;     /* centres per axis, blocks of 8 */
+    int64_t n, M;     /* centres per axis, blocks of B */
+    int B;            /* block width: 8 (portable and make_pe), 16 (AVX-512 sep_pass16) */
     float q, h2q;     /* q = -1 / (2 sigma^2), h2q = -2 q h */
     float W;          /* clamp for w */
     const float *b;   /* (M,) block base centres */
@@ -167,6 +168,15 @@ static void sep_prepare(sep_t *fx, const float *v, int64_t K) {
     }
     float *E = fx->E;
     const float h2q = fx->h2q;
+    if (fx->B == 16) {  /* P, P^2, P^4, P^8: sep_pass16 builds the 16 powers */
+#pragma omp simd
+        for (int64_t i = 0; i < nta; ++i) {
+            const float p1 = exp_fast(h2q * w[i]), p2 = p1 * p1, p4 = p2 * p2;
+            E[1 * nta + i] = p1; E[2 * nta + i] = p2; E[4 * nta + i] = p4;
+            E[8 * nta + i] = p4 * p4;
+        }
+        return;
+    }
 #pragma omp simd
     for (int64_t i = 0; i < nta; ++i) {
         const float p1 = exp_fast(h2q * w[i]), p2 = p1 * p1, p4 = p2 * p2;
@@ -427,6 +437,55 @@ static inline __attribute__((always_inline)) void sep_pass(
     }
 }
 
+/* sep_pass with blocks of 16 (one 512-bit vector a block): P^0..15 by masked multiplies
+ * of P, P^2, P^4, P^8. */
+static inline __attribute__((always_inline)) void sep_pass16(
+        const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
+        int64_t D, const float *G, float r, float *mx, float *sm) {
+    const int64_t n = fx->n, M = fx->M;
+    const __m512 one = _mm512_set1_ps(1.0f), vr = _mm512_set1_ps(r);
+    for (int a = 0; a < 3; ++a) {
+        __m512 e[4];
+        for (int i = 0; i < nt; ++i) {
+            const int64_t ta = 3 * (t0 + i) + a;
+            __m512 v = one;
+            v = _mm512_mask_mul_ps(v, 0xAAAA, v, _mm512_set1_ps(fx->E[1 * nta + ta]));
+            v = _mm512_mask_mul_ps(v, 0xCCCC, v, _mm512_set1_ps(fx->E[2 * nta + ta]));
+            v = _mm512_mask_mul_ps(v, 0xF0F0, v, _mm512_set1_ps(fx->E[4 * nta + ta]));
+            e[i] = _mm512_mask_mul_ps(v, 0xFF00, v, _mm512_set1_ps(fx->E[8 * nta + ta]));
+        }
+        for (int64_t m = 0; m < M; ++m) {
+            const int64_t ch = a * n + 16 * m;
+            const int64_t nv = n - 16 * m < 16 ? n - 16 * m : 16;
+            const __mmask16 valid = (__mmask16)((1u << nv) - 1u);
+            const int64_t no = D - ch < 0 ? 0 : (D - ch > 16 ? 16 : D - ch);
+            const __mmask16 off = (__mmask16)(((1u << no) - 1u) & valid);  /* ch + l < D */
+            const __m512 T = _mm512_loadu_ps(fx->T + 16 * m);
+            const __m512 g = _mm512_loadu_ps(G + ch);
+            __m512 w[4];
+            for (int i = 0; i < nt; ++i) {
+                const __m512 am = _mm512_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]);
+                const __m512 pe = _mm512_mul_ps(am, _mm512_mul_ps(T, e[i]));
+                if (off) {
+                    const __m512 row = _mm512_maskz_loadu_ps(off, rows[i] + ch);
+                    const __m512 f = _mm512_mask_blend_ps(
+                        off, g, _mm512_fmadd_ps(_mm512_sub_ps(row, g), vr, pe));
+                    w[i] = _mm512_mul_ps(_mm512_mask_blend_ps(off, _mm512_add_ps(f, pe), f), pe);
+                } else {
+                    w[i] = _mm512_mul_ps(_mm512_add_ps(g, pe), pe);
+                }
+            }
+            __m512 wm = w[0], ws = w[0];
+            if (nt == 4) {
+                wm = _mm512_max_ps(_mm512_max_ps(w[0], w[1]), _mm512_max_ps(w[2], w[3]));
+                ws = _mm512_add_ps(_mm512_add_ps(w[0], w[1]), _mm512_add_ps(w[2], w[3]));
+            }
+            _mm512_mask_storeu_ps(mx + ch, valid, _mm512_max_ps(wm, _mm512_loadu_ps(mx + ch)));
+            _mm512_mask_storeu_ps(sm + ch, valid, _mm512_add_ps(_mm512_loadu_ps(sm + ch), ws));
+        }
+    }
+}
+
 static void aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                  const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                  float r, float *out, float *mx, float *sm, float *G,
@@ -437,18 +496,20 @@ static void aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *ci
         const float *cf = feat + cidx[c] * Dp;
         const int32_t *nr = nb + c * K;
         for (int64_t d = 0; d < D; ++d) { G[d] = cf[d]; G[D + d] = cf[d]; }
-        for (int64_t d = D2; d < D2 + 16; ++d) G[d] = 0.0f;
-        for (int64_t d = 0; d < D2 + 16; ++d) { mx[d] = -INFINITY; sm[d] = 0.0f; }
+        for (int64_t d = D2; d < D2 + 32; ++d) G[d] = 0.0f;
+        for (int64_t d = 0; d < D2 + 32; ++d) { mx[d] = -INFINITY; sm[d] = 0.0f; }
         sep_prepare(fx, vx + c * K * 3, K);
         int64_t t = 0;
         for (; t + 4 <= K; t += 4) {
             const float *rows[4] = {feat + (int64_t)nr[t] * Dp, feat + (int64_t)nr[t + 1] * Dp,
                                     feat + (int64_t)nr[t + 2] * Dp, feat + (int64_t)nr[t + 3] * Dp};
-            sep_pass(rows, 4, t, nta, fx, D, G, r, mx, sm);
+            if (fx->B == 16) sep_pass16(rows, 4, t, nta, fx, D, G, r, mx, sm);
+            else sep_pass(rows, 4, t, nta, fx, D, G, r, mx, sm);
         }
         for (; t < K; ++t) {
             const float *rows[1] = {feat + (int64_t)nr[t] * Dp};
-            sep_pass(rows, 1, t, nta, fx, D, G, r, mx, sm);
+            if (fx->B == 16) sep_pass16(rows, 1, t, nta, fx, D, G, r, mx, sm);
+            else sep_pass(rows, 1, t, nta, fx, D, G, r, mx, sm);
         }
         float *o = out + c * D2p;
         for (int64_t d = 0; d < D2; ++d) o[d] = gelu(mx[d] + sm[d] * invk);
@@ -520,10 +581,11 @@ static void std_centre_avx512(const float *feat, int64_t Dp, const int32_t *nr, 
 
 /* Whether separable Gaussians are safe in float for n centres in (-1, 1) and this q
  * (see sep_t), and worth it (n >= SEP_MIN_N). */
-static int sep_ok(int64_t n, double q) {
+static int sep_ok(int64_t n, double q, int B) {
     const double aq = fabs(q), h = 2.0 / (double)(n + 1), W = 1.0 + sqrt(87.0 / aq);
-    return n >= SEP_MIN_N && 14.0 * aq * h * (1.0 + W) + 49.0 * aq * h * h < 80.0
-           && 7.0 * h * sqrt(aq) < 3.8;
+    const double L = (double)(B - 1);  /* largest power of P in a block */
+    return n >= SEP_MIN_N && 2.0 * L * aq * h * (1.0 + W) + L * L * aq * h * h < 80.0
+           && L * h * sqrt(aq) < 3.8;
 }
 
 /* A lone cloud on two threads: the caller and one helper share each stage's
@@ -657,15 +719,15 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     int64_t *cidx = xalloc(sizeof(int64_t) * (size_t)S1);
     const int64_t Mmax = (Dmax / 3 + 7) / 8;
     float *sepb = xalloc(sizeof(float) * (size_t)Mmax);
-    float *sepT = xalloc(sizeof(float) * (size_t)Mmax * 8);
+    float *sepT = xalloc(sizeof(float) * (size_t)(Mmax + 1) * 16);
     float *sepA = xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax);
-    float *sepE = xalloc(sizeof(float) * (size_t)K1 * 3 * 8);
+    float *sepE = xalloc(sizeof(float) * (size_t)K1 * 3 * 9);  /* rows 0..8 of E */
     /* the helper's own scratch (pe buffers, mx / sm, separable A / E) */
     const int npar = par ? 2 : 1;
     float *pe2 = par ? xalloc(sizeof(float) * (size_t)PS * 4) : NULL;
     float *vec2 = par ? xalloc(sizeof(float) * (size_t)VS * 2) : NULL;
     float *sepA2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax) : NULL;
-    float *sepE2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * 8) : NULL;
+    float *sepE2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * 9) : NULL;
     int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
     uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
     int rc = 0;
@@ -795,19 +857,26 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
         for (int64_t d = 0; d < D2; ++d) { cc[d] = cents[d % nc]; ax[d] = (int32_t)(d / nc); }
         sep_t fxs, *fx = NULL;
-        if (sep_ok(nc, (double)q)) {
+        /* blocks of 16 where the AVX-512 path runs and float range allows, else of 8 */
+        int B = 0;
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
+        if (sep_ok(nc, (double)q, 16)) B = 16;
+#endif
+        if (!B && sep_ok(nc, (double)q, 8)) B = 8;
+        if (B) {
             /* grid from the exact linspace formula, in double, rounded once */
             const double h = 2.0 / (double)(nc + 1), b0 = -1.0 + h, qd = (double)q;
             fxs.n = nc;
-            fxs.M = (nc + 7) / 8;
+            fxs.B = B;
+            fxs.M = (nc + B - 1) / B;
             fxs.q = q;
             fxs.h2q = (float)(-2.0 * qd * h);
             fxs.W = (float)(1.0 + sqrt(87.0 / fabs(qd)));
             for (int64_t m = 0; m < fxs.M; ++m) {
-                const double bm = b0 + 8.0 * (double)m * h;
+                const double bm = b0 + (double)B * (double)m * h;
                 sepb[m] = (float)bm;
-                for (int l = 0; l < 8; ++l)
-                    sepT[m * 8 + l] = (float)exp(2.0 * qd * l * h * bm + qd * l * l * h * h);
+                for (int l = 0; l < B; ++l)
+                    sepT[m * B + l] = (float)exp(2.0 * qd * l * h * bm + qd * l * l * h * h);
             }
             fxs.b = sepb;
             fxs.T = sepT;
