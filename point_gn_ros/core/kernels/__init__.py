@@ -1,14 +1,15 @@
 """Compiled C kernels for the fast encoder: built with the system C compiler, cached on disk.
 
-The sources (pgn_geom.c, pgn_stage.c) ship with the package; `load()` compiles
+The sources (pgn_*.c, pgn_common.h) ship with the package; `load()` compiles
 them on first use (about a second with gcc) into a per-user cache keyed by the
 source text, the compiler, its flags and the CPU, then loads the shared library
 with ctypes. ctypes releases the GIL during calls, so Python threads run
 clouds in parallel. No network, no Python headers, no torch headers.
 
 pgn_geom.c is compiled without fast-math and with -ffp-contract=off (distances
-must round exactly like the oracle's); pgn_stage.c with -ffast-math (vectorised
-code, glibc's libmvec). The link step omits -ffast-math so that gcc does
+must round exactly like the oracle's); the stage files (pgn_stage.c, pgn_avx512.c,
+pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's libmvec);
+pgn_peak.c (roofline micro-benchmarks) without. The link step omits -ffast-math so that gcc does
 not add crtfastmath.o, which would flush denormals to zero process-wide.
 """
 
@@ -30,8 +31,11 @@ import numpy as np
 _SRC_DIR = Path(__file__).resolve().parent
 _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_stage.c': ['-ffast-math'],
+            'pgn_avx512.c': ['-ffast-math'],
+            'pgn_encode.c': ['-ffast-math'],
             'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
+_HEADERS = ('pgn_common.h',)  # included by the stage files: part of the snapshot and key
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
 ABI_VERSION = 1
 _log = logging.getLogger(__name__)
@@ -87,7 +91,7 @@ def _variant_flags(variant: str) -> list[str]:
 
 def _sources() -> dict[str, bytes]:
     """One snapshot of the sources: what is hashed is exactly what is compiled."""
-    return {name: (_SRC_DIR / name).read_bytes() for name in _SOURCES}
+    return {name: (_SRC_DIR / name).read_bytes() for name in (*_SOURCES, *_HEADERS)}
 
 
 def _key(cc: str, sources: dict[str, bytes]) -> str | None:
@@ -95,7 +99,7 @@ def _key(cc: str, sources: dict[str, bytes]) -> str | None:
     for name in sorted(sources):
         h.update(name.encode())
         h.update(sources[name])
-        h.update(' '.join(_SOURCES[name]).encode())
+        h.update(' '.join(_SOURCES.get(name, [])).encode())
     try:
         version = subprocess.run([cc, '--version'], capture_output=True, text=True,
                                  check=True).stdout
@@ -111,6 +115,8 @@ def _compile(cc: str, sources: dict[str, bytes], variant: str, out: Path) -> Non
     flags = _variant_flags(variant)
     with tempfile.TemporaryDirectory(prefix='pgn_build_') as tmp:
         objs = []
+        for name in _HEADERS:
+            (Path(tmp) / name).write_bytes(sources[name])
         for name, extra in _SOURCES.items():
             src = Path(tmp) / name
             src.write_bytes(sources[name])
