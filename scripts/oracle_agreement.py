@@ -77,8 +77,11 @@ def main() -> None:
     print(f'labels differing: {int((fast_lab != oracle_lab).sum())} of {n}; accuracy fast '
           f'{100 * (fast_lab == true).mean():.2f} %, '
           f'oracle {100 * (oracle_lab == true).mean():.2f} %')
-    print(f'time: fast {times["fast"]:.1f} s, oracle {times["oracle"]:.1f} s '
-          f'({times["oracle"] / times["fast"]:.0f}x)')
+    if args.oracle_features:
+        print(f'time: fast {times["fast"]:.1f} s; oracle features from {args.oracle_features}')
+    else:
+        print(f'time: fast {times["fast"]:.1f} s, oracle {times["oracle"]:.1f} s '
+              f'({times["oracle"] / times["fast"]:.0f}x)')
 
 
 if __name__ == '__main__':
