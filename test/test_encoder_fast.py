@@ -181,3 +181,18 @@ def test_other_configs_match_oracle(cfg: EncoderConfig) -> None:
     xyz = torch.from_numpy(np.stack([prepare(c, n=cfg.num_points) for c in raw]))
     fast = PointGNEncoder(cfg).encode(xyz).numpy()
     _assert_close(fast, NaiveEncoder(cfg).encode(xyz).numpy(), 'config')
+
+
+def test_lone_cloud_on_two_threads_is_bit_identical(real_clouds: np.ndarray) -> None:
+    # a lone cloud may run on the caller plus a helper thread (stage chunks claimed from
+    # a counter): the split must never change a bit, for any configuration path
+    _kernels_or_skip()
+    for cfg in (EncoderConfig(), EncoderConfig(num_points=256, init_dim=48, stages=2, k=60,
+                                               sigma=0.05)):
+        xyz = torch.from_numpy(np.stack([prepare(c, n=cfg.num_points) for c in real_clouds]))
+        one, two = PointGNEncoder(cfg, lone_threads=1), PointGNEncoder(cfg, lone_threads=2)
+        for i in range(len(xyz)):
+            assert torch.equal(one.encode(xyz[i:i + 1]), two.encode(xyz[i:i + 1]))
+        assert torch.equal(two.encode(xyz[:1]), one.encode(xyz)[:1])  # and batches
+    with pytest.raises(ValueError):
+        PointGNEncoder(lone_threads=3)

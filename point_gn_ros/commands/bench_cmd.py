@@ -68,6 +68,25 @@ def synthetic_clouds(count: int, n: int, seed: int = 0):
     return out
 
 
+def synthetic_bank(n: int, dims: int, seed: int = 0, classes: int = 40):
+    """A clustered bank of unit rows: (n, dims) float32 features, (n,) int64 labels.
+
+    Each class has a few modes; entries scatter around them, so nearest entries are
+    structured like a real bank's rather than uniform on the sphere. Coordinate j has
+    scale (1 + j)^-0.6, a decaying spectrum like the shipped bank's PCA features (the
+    leading quarter of the coordinates holds ~90 % of the energy; 93 % in the bank).
+    """
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    scale = (1.0 + np.arange(dims, dtype=np.float32)) ** -0.6
+    modes = rng.standard_normal((classes * 8, dims)).astype(np.float32)
+    which = rng.integers(0, len(modes), n)
+    feats = (modes[which] + rng.standard_normal((n, dims)).astype(np.float32) * 0.8) * scale
+    feats /= np.linalg.norm(feats, axis=1, keepdims=True)
+    return feats, which % classes
+
+
 def encoder_rows(quick: bool, repeats: int, device: str, threads: int | None) -> list[Row]:
     """Fast encoder at batch 1, 16, 64 against the naive oracle, plus warm-up cost."""
     import torch
@@ -116,12 +135,40 @@ def encoder_rows(quick: bool, repeats: int, device: str, threads: int | None) ->
             for i in range(0, total, batch):
                 enc.encode(clouds[i % 64:i % 64 + batch])
 
+        cpu0 = time.process_time()
         rate = total / _median_time(run, repeats)
+        cpu = (time.process_time() - cpu0) / (total * repeats)
         rows.append(dict(section='encoder', what=f'fast encoder, batch {batch}', value=rate,
                          unit='clouds/s', note=f'{rate / naive_rate:.0f}x naive; '
-                                               f'{1e3 / rate:.2f} ms per cloud'))
+                                               f'{1e3 / rate:.2f} ms per cloud; process CPU '
+                                               f'{cpu * 1e3:.2f} ms per cloud'))
     enc.close()
+    # A lone cloud on 1 and on 2 threads (the automatic choice picks 2 only while the load
+    # average leaves a CPU spare); wall time is what changes, CPU time shows the overhead.
+    total = 8 if quick else 32
+    for lone in (1, 2):
+        one = PointGNEncoder(cfg, device=device, threads=threads, lone_threads=lone)
+
+        def run_lone(one: PointGNEncoder = one) -> None:
+            for i in range(total):
+                one.encode(clouds[i % 64:i % 64 + 1])
+
+        run_lone()
+        cpu0 = time.process_time()
+        t = _median_time(run_lone, repeats) / total
+        cpu = (time.process_time() - cpu0) / (total * repeats)
+        rows.append(dict(section='encoder', what=f'one cloud, lone_threads={lone}',
+                         value=t * 1e3, unit='ms', note=f'process CPU {cpu * 1e3:.2f} ms; '
+                                                        f'load average {_load():.1f}'))
     return rows
+
+
+def _load() -> float:
+    import os
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return float('nan')
 
 
 def resample_rows(quick: bool, repeats: int) -> list[Row]:
@@ -181,45 +228,118 @@ def classifier_rows(quick: bool, repeats: int, device: str) -> list[Row]:
     return rows
 
 
-PROFILE_SLOTS = {0: 'FPS', 1: 'kNN', 2: 'offsets + std passes', 7: '  of which feature std',
+# Instrumented kernel slots (pgn_prof in pgn_stage.c) -> phase names of the roofline table.
+PROFILE_SLOTS = {8: 'initial embedding', 0: 'FPS', 1: 'kNN', 7: 'feature std',
                  3: 'aggregation stage 1', 4: 'aggregation stage 2', 5: 'aggregation stage 3',
-                 6: 'aggregation stage 4'}
+                 6: 'aggregation stage 4', 9: 'pooling', 10: 'offsets and their std',
+                 11: 'work space (allocate, zero)'}
+_PROF_LEN = 16  # length of pgn_prof
+
+
+def _roofline_row(what: str, seconds: float, floor: float | None, note: str = '') -> Row:
+    ratio = f'{seconds / floor:.1f}x its floor' if floor else 'no floor counted'
+    return dict(section='roofline', what=what, value=seconds * 1e3, unit='ms CPU',
+                floor_ms=None if floor is None else floor * 1e3,
+                note=(f'floor {floor * 1e3:.3f} ms, ' if floor else '') + ratio
+                + (f'; {note}' if note else ''))
 
 
 def profile_rows(quick: bool, repeats: int) -> list[Row]:
-    """CPU ms per cloud of each kernel phase, one thread (instrumented build; min of repeats)."""
+    """Roofline table: each phase's CPU time per cloud against its floor on this core.
+
+    Time: one thread, instrumented build, min of repeats. Floor: work / peaks measured
+    in this run (core/kernels/roofline.py).
+    """
     import ctypes
 
     import numpy as np
 
     from point_gn_ros.core import kernels
     from point_gn_ros.core.encoder import PointGNEncoder
+    from point_gn_ros.core.kernels.roofline import measure_peaks, phase_work
 
     lib = kernels.load()
     try:
-        prof = (ctypes.c_double * 8).in_dll(lib, 'pgn_prof') if lib is not None else None
+        prof = (ctypes.c_double * _PROF_LEN).in_dll(lib, 'pgn_prof') if lib is not None else None
     except ValueError:
         prof = None
     if prof is None:
-        return [dict(section='profile', what='kernel phases', value=float('nan'), unit='ms',
+        return [dict(section='roofline', what='kernel phases', value=float('nan'), unit='ms',
                      note='needs the instrumented kernel: run with --profile from a fresh '
                           'process')]
+    peaks = measure_peaks(lib, tries=2 if quick else 5)
+    rows = [dict(section='peaks', what='fp32 lane ops (FMA + add chains)', value=peaks.ops / 1e9,
+                 unit='G/s', note='one core, thread CPU time, best of tries'),
+            dict(section='peaks', what='exp (encoder polynomial)', value=peaks.exps / 1e9,
+                 unit='G/s', note=''),
+            dict(section='peaks', what='read bandwidth, 256 KB (L2)', value=peaks.l2_bw / 1e9,
+                 unit='GB/s', note=''),
+            dict(section='peaks', what='read bandwidth, 256 MB (memory)',
+                 value=peaks.mem_bw / 1e9, unit='GB/s', note='')]
     enc = PointGNEncoder(threads=1)
     clouds = synthetic_clouds(8 if quick else 32, enc.cfg.num_points, seed=5)
     enc.encode(clouds[:1])
     best = None
     for _ in range(max(2, repeats)):
-        for i in range(8):
+        for i in range(_PROF_LEN):
             prof[i] = 0.0
-        t0 = time.process_time()
+        t0 = time.thread_time()  # batch on the calling thread (threads=1)
         enc.encode(clouds)
-        total = time.process_time() - t0
-        got = np.array([total] + [prof[i] for i in range(8)]) / len(clouds) * 1e3
+        total = time.thread_time() - t0
+        got = np.array([total] + [prof[i] for i in range(_PROF_LEN)]) / len(clouds)
         best = got if best is None else np.minimum(best, got)
-    rows = [dict(section='profile', what='encode, CPU per cloud', value=float(best[0]),
-                 unit='ms', note='1 thread, min over repeats')]
-    rows += [dict(section='profile', what=name, value=float(best[slot + 1]), unit='ms', note='')
-             for slot, name in PROFILE_SLOTS.items()]
+    work = phase_work(enc.cfg)
+    floors = {name: w.floor(peaks) for name, w in work.items()}
+    for slot, name in PROFILE_SLOTS.items():
+        rows.append(_roofline_row(name, float(best[slot + 1]), floors.get(name)))
+    named = sum(float(best[slot + 1]) for slot in PROFILE_SLOTS)
+    rows.append(_roofline_row('rest (copies, pe tables, calls)', float(best[0]) - named, None))
+    rows.append(_roofline_row('encoder, one cloud, all phases', float(best[0]),
+                              sum(floors.values()), '1 thread, min over repeats'))
+    rows += search_roofline_rows(peaks, quick, repeats)
+    return rows
+
+
+def search_roofline_rows(peaks, quick: bool, repeats: int) -> list[Row]:
+    """Lone-query classification against a 100k-entry bank (10k with --quick).
+
+    Exact float32 scan and the two-stage int8 search (bank/search.py), thread CPU time.
+    """
+    import numpy as np
+
+    from point_gn_ros.bank.search import BankIndex
+    from point_gn_ros.core.kernels.roofline import Work, bank_scan_work
+
+    n, dims = (10_000 if quick else 100_000), 512
+    feats, labels = synthetic_bank(n, dims, seed=3)
+    index = BankIndex(feats, labels, num_classes=40)
+    rng = np.random.default_rng(4)
+    queries = feats[rng.integers(0, n, 8)]
+    queries = queries + (rng.normal(0, 0.3, queries.shape)
+                         * (1.0 + np.arange(dims)) ** -0.6).astype(np.float32)
+    queries /= np.linalg.norm(queries, axis=1, keepdims=True)
+    rows = []
+    # floors: the float32 bank read once; the int8 codes read once plus the rescored rows
+    exact_work = bank_scan_work(n, dims, 4.0)
+    coarse_work = bank_scan_work(n, index.coarse_dims, 1.0)
+    rescore = bank_scan_work(index.candidates, dims, 4.0)
+    two_stage = Work(ops=coarse_work.ops + rescore.ops, bytes=coarse_work.bytes + rescore.bytes,
+                     memory=True)
+    for what, fn, work in (('classifier: exact float32 scan', index.exact_scores, exact_work),
+                           (f'classifier: int8 {index.coarse_dims}-d scan + '
+                            f'{index.candidates} rescored', index.scores, two_stage)):
+        fn(queries[:1], gamma=50.0)
+        best = float('inf')
+        for _ in range(max(2, repeats)):
+            t0 = time.thread_time()
+            for q in queries:
+                fn(q[None], gamma=50.0)
+            best = min(best, (time.thread_time() - t0) / len(queries))
+        floor = work.floor(peaks)
+        rows.append(_roofline_row(what, best, floor, f'lone query, {n:,} x {dims} bank'))
+    agree = (index.scores(queries, 50.0).argmax(1) == index.exact_scores(queries, 50.0).argmax(1))
+    rows[-1]['note'] += (f'; coarse energy {index.coarse_energy:.2f}, same label as exact '
+                         f'{int(agree.sum())}/{len(agree)}')
     return rows
 
 
@@ -266,6 +386,8 @@ def _bench(args: argparse.Namespace) -> int:
     if args.profile:
         sections.append(lambda: profile_rows(args.quick, repeats))
     if not args.json:
+        print(f'# {platform.processor() or platform.machine()}, {threads} threads, load average '
+              f'{_load():.1f} at start', flush=True)
         print(TABLE_HEADER, flush=True)
     for section in sections:
         got = section()
@@ -274,7 +396,8 @@ def _bench(args: argparse.Namespace) -> int:
             print(format_rows(got), flush=True)  # as each section finishes
     if args.json:
         info = dict(machine=platform.processor() or platform.machine(), threads=threads,
-                    torch=torch.__version__, repeats=repeats, quick=args.quick)
+                    torch=torch.__version__, repeats=repeats, quick=args.quick,
+                    load_average_end=_load())
         json.dump(dict(info=info, rows=rows), sys.stdout, indent=1)
         print()
     return 0

@@ -1,14 +1,15 @@
 """Compiled C kernels for the fast encoder: built with the system C compiler, cached on disk.
 
-The sources (pgn_geom.c, pgn_stage.c) ship with the package; `load()` compiles
+The sources (pgn_*.c, pgn_common.h) ship with the package; `load()` compiles
 them on first use (about a second with gcc) into a per-user cache keyed by the
 source text, the compiler, its flags and the CPU, then loads the shared library
 with ctypes. ctypes releases the GIL during calls, so Python threads run
 clouds in parallel. No network, no Python headers, no torch headers.
 
 pgn_geom.c is compiled without fast-math and with -ffp-contract=off (distances
-must round exactly like the oracle's); pgn_stage.c with -ffast-math (vectorised
-code, glibc's libmvec). The link step omits -ffast-math so that gcc does
+must round exactly like the oracle's); the stage files (pgn_stage.c, pgn_avx512.c,
+pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's libmvec);
+pgn_peak.c (roofline micro-benchmarks) without. The link step omits -ffast-math so that gcc does
 not add crtfastmath.o, which would flush denormals to zero process-wide.
 """
 
@@ -29,7 +30,12 @@ import numpy as np
 
 _SRC_DIR = Path(__file__).resolve().parent
 _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
-            'pgn_stage.c': ['-ffast-math']}
+            'pgn_stage.c': ['-ffast-math'],
+            'pgn_avx512.c': ['-ffast-math'],
+            'pgn_encode.c': ['-ffast-math'],
+            'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
+            'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
+_HEADERS = ('pgn_common.h',)  # included by the stage files: part of the snapshot and key
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
 ABI_VERSION = 1
 _log = logging.getLogger(__name__)
@@ -85,7 +91,7 @@ def _variant_flags(variant: str) -> list[str]:
 
 def _sources() -> dict[str, bytes]:
     """One snapshot of the sources: what is hashed is exactly what is compiled."""
-    return {name: (_SRC_DIR / name).read_bytes() for name in _SOURCES}
+    return {name: (_SRC_DIR / name).read_bytes() for name in (*_SOURCES, *_HEADERS)}
 
 
 def _key(cc: str, sources: dict[str, bytes]) -> str | None:
@@ -93,7 +99,7 @@ def _key(cc: str, sources: dict[str, bytes]) -> str | None:
     for name in sorted(sources):
         h.update(name.encode())
         h.update(sources[name])
-        h.update(' '.join(_SOURCES[name]).encode())
+        h.update(' '.join(_SOURCES.get(name, [])).encode())
     try:
         version = subprocess.run([cc, '--version'], capture_output=True, text=True,
                                  check=True).stdout
@@ -109,6 +115,8 @@ def _compile(cc: str, sources: dict[str, bytes], variant: str, out: Path) -> Non
     flags = _variant_flags(variant)
     with tempfile.TemporaryDirectory(prefix='pgn_build_') as tmp:
         objs = []
+        for name in _HEADERS:
+            (Path(tmp) / name).write_bytes(sources[name])
         for name, extra in _SOURCES.items():
             src = Path(tmp) / name
             src.write_bytes(sources[name])
@@ -117,7 +125,7 @@ def _compile(cc: str, sources: dict[str, bytes], variant: str, out: Path) -> Non
                            check=True, capture_output=True, text=True)
             objs.append(str(obj))
         tmp_lib = Path(tmp) / out.name
-        subprocess.run([cc, '-shared', '-o', str(tmp_lib), *objs, '-lm'],
+        subprocess.run([cc, '-shared', '-pthread', '-o', str(tmp_lib), *objs, '-lm'],
                        check=True, capture_output=True, text=True)
         out.parent.mkdir(parents=True, exist_ok=True)
         staged = out.with_name(f'{out.name}.{os.getpid()}.tmp')
@@ -180,12 +188,24 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_abi_version.restype = ctypes.c_int
     lib.pgn_encode.restype = ctypes.c_int
     lib.pgn_encode.argtypes = [p, i64, i64, i64, i64, i64, f32, p, i64, p]
+    lib.pgn_encode_lone.restype = ctypes.c_int
+    lib.pgn_encode_lone.argtypes = [p, i64, i64, i64, i64, f32, p, i64, p]
     lib.pgn_fps.restype = None
     lib.pgn_fps.argtypes = [p, p, p, p, i64, i64, p, p]
     lib.pgn_fps_from.restype = None
     lib.pgn_fps_from.argtypes = [p, p, p, i64, i64, i64, p, p]
     lib.pgn_knn.restype = None
     lib.pgn_knn.argtypes = [p, p, p, i64, p, p, p, i64, i64, p, p, p]
+    for name, args in (('pgn_peak_ops', [i64]), ('pgn_peak_exp', [i64]),
+                       ('pgn_peak_read', [p, i64, i64])):
+        getattr(lib, name).restype = ctypes.c_double
+        getattr(lib, name).argtypes = args
+    lib.pgn_scan_i8.restype = None
+    lib.pgn_scan_i8.argtypes = [p, i64, i64, p, p]
+    lib.pgn_top_m.restype = i64
+    lib.pgn_top_m.argtypes = [p, i64, i64, p, p]
+    lib.pgn_scan_f32.restype = None
+    lib.pgn_scan_f32.argtypes = [p, i64, p, i64, p, p]
 
 
 def load() -> ctypes.CDLL | None:

@@ -172,9 +172,16 @@ static void sort_small(uint64_t *keys, int64_t n) {
 }
 
 static inline int64_t count_le(const float *d, int64_t n, float tau) {
-    int64_t c = 0;
-#pragma omp simd reduction(+:c)
-    for (int64_t i = 0; i < n; ++i) c += d[i] <= tau;
+    int64_t c = 0, i = 0;
+#if defined(__AVX512F__)
+    /* compare masks and popcounts: no widening of lanes to 64-bit counters */
+    const __m512 vt = _mm512_set1_ps(tau);
+    for (; i + 32 <= n; i += 32) {
+        c += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d + i), vt, _CMP_LE_OQ));
+        c += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d + i + 16), vt, _CMP_LE_OQ));
+    }
+#endif
+    for (; i < n; ++i) c += d[i] <= tau;
     return c;
 }
 

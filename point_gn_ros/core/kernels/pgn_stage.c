@@ -1,41 +1,11 @@
-/* Point-GN encoder, one cloud at a time, fused: no (S, k, D) tensor is ever built.
+/* Point-GN stage kernels, portable C: separable-Gaussian factors (pgn_sep_prepare), the
+ * generic neighbourhood aggregation (pgn_stage_aggregate) and the separable-form check.
  *
- * Compiled with -O3 -march=native -ffast-math (vectorised expf from glibc's
- * libmvec); the geometry (FPS, kNN) lives in pgn_geom.c, compiled without
- * fast-math so neighbour choices match the oracle exactly. Results are a pure
- * function of one cloud, whatever the batch or thread, so batches are invariant.
+ * Compiled with -O3 -march=native -ffast-math; the geometry (FPS, kNN) lives in pgn_geom.c,
+ * compiled without fast-math so neighbour choices match the oracle exactly; pgn_avx512.c
+ * holds the AVX-512 versions, pgn_encode.c drives one cloud through the stages.
  */
-#include <math.h>
-#include <stdint.h>
-#include <stdlib.h>
-#include <string.h>
-#if defined(__AVX512F__)
-#include <immintrin.h>
-#endif
-
-void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
-             int64_t m, int64_t *idx, float *min_d);
-void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const float *cx,
-             const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
-             uint64_t *keys);
-
-int pgn_abi_version(void) { return 1; }
-
-#ifdef PGN_PROFILE
-#include <time.h>
-double pgn_prof[8];
-static double now(void) { struct timespec ts; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
-#define TIC(i) double _t##i = now()
-#define TOC(i, slot) pgn_prof[slot] += now() - _t##i
-#else
-#define TIC(i)
-#define TOC(i, slot)
-#endif
-
-typedef struct {
-    int64_t num_points, init_dim, stages, k;
-    float sigma;
-} pgn_cfg;
+#include "pgn_common.h"
 
 /* exp(x) for x in [-87, 87] (callers clamp): Cody-Waite range reduction and a
  * degree-6 polynomial, relative error < 2e-7. Inline and branch-free, so the
@@ -57,57 +27,10 @@ static inline float exp_fast(float x) {
     return p * scale;
 }
 
-static inline float gelu(float x) { return 0.5f * x * (1.0f + erff(x * 0.70710678118654752f)); }
-
-/* Gaussian positional encoding of v (3 values) into pe[0..3n): axis blocks of n. */
-static inline void gpe3(const float *v, const float *cent, int64_t n, float q, float *pe) {
-    for (int a = 0; a < 3; ++a) {
-        const float va = v[a];
-        float *o = pe + a * n;
-#pragma omp simd
-        for (int64_t j = 0; j < n; ++j) {
-            float u = cent[j] - va;
-            o[j] = expf(q * u * u);
-        }
-    }
-}
-
-#define PAD 16
-/* Separable Gaussians pay off from this many centres per axis (stage 2 on). */
-#ifndef SEP_MIN_N
-#define SEP_MIN_N 36
-#endif
-static inline int64_t padded(int64_t d) { return (d + PAD - 1) / PAD * PAD; }
-
-static void *xalloc(size_t bytes) {
-    /* 64-byte aligned, zeroed: padding lanes stay 0 (they enter sums as 0 - 0) */
-    size_t sz = (bytes + 63) / 64 * 64;
-    void *p = aligned_alloc(64, sz ? sz : 64);
-    if (p) memset(p, 0, sz ? sz : 64);
-    return p;
-}
-
-/* Separable Gaussians on a uniform grid of n centres b_0 + j h (j < n):
- * exp(q (b_0 + (8 m + l) h - w)^2) = A_m(w) * T[m][l] * P(w)^l with
- * A_m(w) = exp(q (b_m - w)^2), b_m = b_0 + 8 m h, T[m][l] = exp(2 q l h b_m + q l^2 h^2),
- * P(w) = exp(-2 q h w). w is clamped to [-W, W], W = 1 + sqrt(87 / |q|): beyond it every
- * Gaussian is below 2e-38 either way. sep_ok() admits only grids where, with blocks of 8,
- * every factor and partial product stays inside float range and an underflowing A_m
- * only ever drops values below e^-30. */
-typedef struct {
-    int64_t n, M;     /* centres per axis, blocks of 8 */
-    float q, h2q;     /* q = -1 / (2 sigma^2), h2q = -2 q h */
-    float W;          /* clamp for w */
-    const float *b;   /* (M,) block base centres */
-    const float *T;   /* (M, 8) */
-    float *A;         /* (K * 3, M) scratch */
-    float *E;         /* (K * 3, 8) scratch */
-} sep_t;
-
 /* A and E for one centre's K neighbours, v (K, 3) normalised offsets; stored
  * neighbour-axis minor (A[m][ta], E[l][ta], ta = 3 t + a) so every loop here runs
  * vectorised across the 3 K (t, a) pairs. */
-static void sep_prepare(sep_t *fx, const float *v, int64_t K) {
+void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K) {
     const int64_t M = fx->M, nta = K * 3;
     float *w = fx->E;  /* row 0 of E (all ones) is filled last: use it for w meanwhile */
     const float W = fx->W;
@@ -116,6 +39,20 @@ static void sep_prepare(sep_t *fx, const float *v, int64_t K) {
     for (int64_t m = 0; m < M; ++m) {
         const float bm = fx->b[m], q = fx->q;
         float *A = fx->A + m * nta;
+#if defined(__AVX512F__)
+        /* 16 lanes: 2^-(u^2 |q| log2 e) by rounding + polynomial + scalef (as in
+         * pgn_aggregate_d32_avx512), the exponent clamped like exp_fast's -87 */
+        const __m512 vb = _mm512_set1_ps(bm), vs = _mm512_set1_ps(-q * 1.44269504088896341f);
+        const __m512 tmax = _mm512_set1_ps(87.0f * 1.44269504088896341f);
+        for (int64_t i = 0; i < nta; i += 16) {
+            const __mmask16 k = nta - i >= 16 ? (__mmask16)0xffff
+                                              : (__mmask16)((1u << (nta - i)) - 1u);
+            const __m512 u = _mm512_sub_ps(vb, _mm512_maskz_loadu_ps(k, w + i));
+            const __m512 t = _mm512_min_ps(_mm512_mul_ps(_mm512_mul_ps(u, u), vs), tmax);
+            _mm512_mask_storeu_ps(A + i, k, exp2_neg_avx512(t));
+        }
+        continue;
+#endif
 #pragma omp simd
         for (int64_t i = 0; i < nta; ++i) {
             const float u = bm - w[i];
@@ -125,6 +62,15 @@ static void sep_prepare(sep_t *fx, const float *v, int64_t K) {
     }
     float *E = fx->E;
     const float h2q = fx->h2q;
+    if (fx->B == 16) {  /* P, P^2, P^4, P^8: sep_pass16 builds the 16 powers */
+#pragma omp simd
+        for (int64_t i = 0; i < nta; ++i) {
+            const float p1 = exp_fast(h2q * w[i]), p2 = p1 * p1, p4 = p2 * p2;
+            E[1 * nta + i] = p1; E[2 * nta + i] = p2; E[4 * nta + i] = p4;
+            E[8 * nta + i] = p4 * p4;
+        }
+        return;
+    }
 #pragma omp simd
     for (int64_t i = 0; i < nta; ++i) {
         const float p1 = exp_fast(h2q * w[i]), p2 = p1 * p1, p4 = p2 * p2;
@@ -179,7 +125,7 @@ static inline void make_pe(int64_t t, const float *v, int64_t npe, const float *
  * when r = 1e5 (zero spread). fx: separable Gaussians, or NULL for direct evaluation (cheaper for small n).
  * Neighbours go 4 at a time so the running max and sum are loaded and stored once
  * per 4 neighbours. */
-static void stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, const int32_t *nb,
+void pgn_stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, const int32_t *nb,
                             int64_t S, int64_t K, const float *vx, float r, const float *cc,
                             const int32_t *ax, float q, float *out, float *pe, int64_t PS,
                             float *mx, float *sm, sep_t *fx) {
@@ -192,7 +138,7 @@ static void stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, c
         const int32_t *nr = nb + c * K;
         const float *vc = vx + c * K * 3;
         for (int64_t d = 0; d < 2 * Dp; ++d) { mx[d] = -INFINITY; sm[d] = 0.0f; }
-        if (fx) sep_prepare(fx, vc, K);
+        if (fx) pgn_sep_prepare(fx, vc, K);
         int64_t t = 0;
         for (; t + 4 <= K; t += 4) {
             make_pe(t, vc + t * 3, npe, cc, ax, q, fx, K, pe0);
@@ -249,282 +195,11 @@ static void stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, c
     }
 }
 
-/* Encode one cloud. xyz: (num_points, 3); cents: concatenated Gaussian centre
- * tables (init block of init_dim/3, then 2*D_i/3 per stage); out: (feature_dim,).
- * Returns 0, or -1 when out of memory. */
-#if defined(__AVX512F__)
-/* Stage aggregation for 16 < D <= 32 (stage 1 of the default encoder, D = 27) with AVX-512:
- * everything for one centre stays in registers. Lanes: P = pe channels [0, 32) for the
- * offset half, Q = pe channels [D, D + 32) for the centre half. Gaussians as
- * 2^-(u s)^2 with s^2 = -q log2(e): rounding splits the exponent, a degree-6 polynomial
- * gives 2^r on [-1/2, 1/2] (relative error < 2e-7) and scalef applies 2^k exactly, also
- * for huge k (-> 0), so no clamping is needed.
- * ccs: (64,) pe-lane centres times s; m1, m2: (4,) lane masks axis >= 1, axis >= 2. */
-static void aggregate_d32_avx512(const float *feat, int64_t D, const int64_t *cidx,
-                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
-                                 float r, const float *ccs, const __mmask16 *m1,
-                                 const __mmask16 *m2, float s, float *out, float *acc) {
-    const int64_t Dp = 32, D2p = padded(2 * D);
-    const __m512 c1 = _mm512_set1_ps(0.6931471805599453f), c2 = _mm512_set1_ps(0.2402265069591007f);
-    const __m512 c3 = _mm512_set1_ps(0.05550410866482158f), c4 = _mm512_set1_ps(0.009618129107628477f);
-    const __m512 c5 = _mm512_set1_ps(0.0013333558146428443f);
-    const __m512 c6 = _mm512_set1_ps(0.00015403530393381608f);
-    const __m512 one = _mm512_set1_ps(1.0f), vr = _mm512_set1_ps(r);
-    const __m512 cc0 = _mm512_loadu_ps(ccs), cc1 = _mm512_loadu_ps(ccs + 16);
-    const __m512 cc2 = _mm512_loadu_ps(ccs + 32), cc3 = _mm512_loadu_ps(ccs + 48);
-    const float invk = 1.0f / (float)K;
-#define PGN_PE(cc, i, dst)                                                          \
-    do {                                                                            \
-        __m512 va_ = _mm512_mask_blend_ps(m1[i], vb0, vb1);                         \
-        va_ = _mm512_mask_blend_ps(m2[i], va_, vb2);                                \
-        const __m512 u_ = _mm512_sub_ps(cc, va_);                                   \
-        const __m512 t_ = _mm512_mul_ps(u_, u_);                                    \
-        const __m512 k_ = _mm512_roundscale_ps(t_, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); \
-        const __m512 f_ = _mm512_sub_ps(k_, t_);  /* 2^-t = 2^f * 2^-k, |f| <= 1/2 */ \
-        __m512 p_ = _mm512_fmadd_ps(c6, f_, c5);                                   \
-        p_ = _mm512_fmadd_ps(p_, f_, c4);                                           \
-        p_ = _mm512_fmadd_ps(p_, f_, c3);                                           \
-        p_ = _mm512_fmadd_ps(p_, f_, c2);                                           \
-        p_ = _mm512_fmadd_ps(p_, f_, c1);                                           \
-        p_ = _mm512_fmadd_ps(p_, f_, one);                                          \
-        dst = _mm512_scalef_ps(p_, _mm512_sub_ps(_mm512_setzero_ps(), k_));         \
-    } while (0)
-    for (int64_t c = 0; c < S; ++c) {
-        const float *cf = feat + cidx[c] * Dp;
-        const __m512 cf0 = _mm512_load_ps(cf), cf1 = _mm512_load_ps(cf + 16);
-        __m512 mx0 = _mm512_set1_ps(-INFINITY), mx1 = mx0, mx2 = mx0, mx3 = mx0;
-        __m512 sm0 = _mm512_setzero_ps(), sm1 = sm0, sm2 = sm0, sm3 = sm0;
-        const int32_t *nr = nb + c * K;
-        const float *vc = vx + c * K * 3;
-        for (int64_t t = 0; t < K; ++t) {
-            const __m512 vb0 = _mm512_set1_ps(vc[t * 3] * s);
-            const __m512 vb1 = _mm512_set1_ps(vc[t * 3 + 1] * s);
-            const __m512 vb2 = _mm512_set1_ps(vc[t * 3 + 2] * s);
-            __m512 p0, p1, q0, q1;
-            PGN_PE(cc0, 0, p0);
-            PGN_PE(cc1, 1, p1);
-            PGN_PE(cc2, 2, q0);
-            PGN_PE(cc3, 3, q1);
-            const float *row = feat + (int64_t)nr[t] * Dp;
-            const __m512 f0 = _mm512_mul_ps(_mm512_sub_ps(_mm512_load_ps(row), cf0), vr);
-            const __m512 f1 = _mm512_mul_ps(_mm512_sub_ps(_mm512_load_ps(row + 16), cf1), vr);
-            const __m512 w0 = _mm512_mul_ps(_mm512_add_ps(f0, p0), p0);
-            const __m512 w1 = _mm512_mul_ps(_mm512_add_ps(f1, p1), p1);
-            const __m512 w2 = _mm512_mul_ps(_mm512_add_ps(cf0, q0), q0);
-            const __m512 w3 = _mm512_mul_ps(_mm512_add_ps(cf1, q1), q1);
-            mx0 = _mm512_max_ps(mx0, w0); sm0 = _mm512_add_ps(sm0, w0);
-            mx1 = _mm512_max_ps(mx1, w1); sm1 = _mm512_add_ps(sm1, w1);
-            mx2 = _mm512_max_ps(mx2, w2); sm2 = _mm512_add_ps(sm2, w2);
-            mx3 = _mm512_max_ps(mx3, w3); sm3 = _mm512_add_ps(sm3, w3);
-        }
-        const __m512 ik = _mm512_set1_ps(invk);
-        _mm512_storeu_ps(acc, _mm512_fmadd_ps(sm0, ik, mx0));
-        _mm512_storeu_ps(acc + 16, _mm512_fmadd_ps(sm1, ik, mx1));
-        _mm512_storeu_ps(acc + 32, _mm512_fmadd_ps(sm2, ik, mx2));
-        _mm512_storeu_ps(acc + 48, _mm512_fmadd_ps(sm3, ik, mx3));
-        float *o = out + c * D2p;
-        for (int64_t d = 0; d < D; ++d) o[d] = gelu(acc[d]);
-        for (int64_t d = 0; d < D; ++d) o[D + d] = gelu(acc[32 + d]);
-        for (int64_t d = 2 * D; d < D2p; ++d) o[d] = 0.0f;
-    }
-#undef PGN_PE
-}
-#endif
-
 /* Whether separable Gaussians are safe in float for n centres in (-1, 1) and this q
  * (see sep_t), and worth it (n >= SEP_MIN_N). */
-static int sep_ok(int64_t n, double q) {
+int pgn_sep_ok(int64_t n, double q, int B) {
     const double aq = fabs(q), h = 2.0 / (double)(n + 1), W = 1.0 + sqrt(87.0 / aq);
-    return n >= SEP_MIN_N && 14.0 * aq * h * (1.0 + W) + 49.0 * aq * h * h < 80.0
-           && 7.0 * h * sqrt(aq) < 3.8;
-}
-
-static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cents, float *out) {
-    const int64_t N = cfg->num_points, D0 = cfg->init_dim;
-    const float q = -0.5f / (cfg->sigma * cfg->sigma);
-    const int64_t S1 = N / 2;
-    const int64_t K1 = cfg->k < N ? cfg->k : N;
-    const int64_t Dmax = D0 << cfg->stages;  /* widest 2D */
-    /* Every stage holds S_i rows of padded(2 D_i) <= N * D0 + S_i * PAD features. */
-    const int64_t fsz = N * (D0 + PAD);
-    float *featA = xalloc(sizeof(float) * (size_t)fsz);
-    float *featB = xalloc(sizeof(float) * (size_t)fsz);
-    float *xyz = xalloc(sizeof(float) * (size_t)N * 3);
-    float *cxyz = xalloc(sizeof(float) * (size_t)N * 3);
-    float *soa = xalloc(sizeof(float) * (size_t)N * 6);
-    float *scratch = xalloc(sizeof(float) * (size_t)N);
-    float *vx = xalloc(sizeof(float) * (size_t)S1 * K1 * 3);
-    /* one scratch vector / pe buffer: a multiple of 64 bytes, since the vector loops
-     * declare their pointers 64-byte aligned */
-    const int64_t VS = padded(Dmax + 4 * PAD), PS = VS;
-    float *vec = xalloc(sizeof(float) * (size_t)VS * 3);
-    float *pe = xalloc(sizeof(float) * (size_t)PS * 4);
-    int32_t *ax = xalloc(sizeof(int32_t) * (size_t)VS);
-    int64_t *cidx = xalloc(sizeof(int64_t) * (size_t)S1);
-    const int64_t Mmax = (Dmax / 3 + 7) / 8;
-    float *sepb = xalloc(sizeof(float) * (size_t)Mmax);
-    float *sepT = xalloc(sizeof(float) * (size_t)Mmax * 8);
-    float *sepA = xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax);
-    float *sepE = xalloc(sizeof(float) * (size_t)K1 * 3 * 8);
-    int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
-    uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
-    int rc = 0;
-    if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
-        || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE) {
-        rc = -1;
-        goto done;
-    }
-    float *cc = vec, *mx = vec + VS, *sm = vec + 2 * VS;
-    memcpy(xyz, xyz_in, sizeof(float) * (size_t)N * 3);
-    /* initial embedding: (N, padded(D0)) */
-    {
-        const int64_t n0 = D0 / 3, D0p = padded(D0);
-        for (int64_t i = 0; i < N; ++i) gpe3(xyz + i * 3, cents, n0, q, featA + i * D0p);
-        cents += n0;
-    }
-    float *feat = featA, *nfeat = featB;
-    int64_t n = N, D = D0;
-    float *o = out;
-    for (int64_t st = 0; st < cfg->stages; ++st) {
-        const int64_t S = n / 2, K = cfg->k < n ? cfg->k : n, D2 = 2 * D, nc = D2 / 3;
-        const int64_t Dp = padded(D), D2p = padded(D2);
-        float *x = soa, *y = soa + n, *z = soa + 2 * n;
-        for (int64_t i = 0; i < n; ++i) { x[i] = xyz[i * 3]; y[i] = xyz[i * 3 + 1]; z[i] = xyz[i * 3 + 2]; }
-        TIC(1);
-        pgn_fps(xyz, x, y, z, n, S, cidx, scratch);
-        TOC(1, 0);
-        float *cx = soa + 3 * n, *cy = cx + S, *cz = cy + S;
-        for (int64_t c = 0; c < S; ++c) {
-            cx[c] = x[cidx[c]]; cy[c] = y[cidx[c]]; cz[c] = z[cidx[c]];
-            cxyz[c * 3] = cx[c]; cxyz[c * 3 + 1] = cy[c]; cxyz[c * 3 + 2] = cz[c];
-        }
-        TIC(2);
-        pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys);
-        TOC(2, 1);
-        TIC(3);
-        /* offsets and their unbiased std: float partials per centre, double totals,
-         * then a second (vectorised) pass for the squared deviations */
-        double s1 = 0.0, s2 = 0.0;
-        for (int64_t c = 0; c < S; ++c) {
-            float p0 = 0.0f, p1 = 0.0f, p2 = 0.0f;
-            const float qx = cx[c], qy = cy[c], qz = cz[c];
-            const int32_t *nr = nb + c * K;
-            float *v = vx + c * K * 3;
-            for (int64_t t = 0; t < K; ++t) {
-                const int64_t j = nr[t];
-                const float a0 = x[j] - qx, a1 = y[j] - qy, a2 = z[j] - qz;
-                v[t * 3] = a0; v[t * 3 + 1] = a1; v[t * 3 + 2] = a2;
-                p0 += a0; p1 += a1; p2 += a2;
-            }
-            s1 += (double)p0 + (double)p1 + (double)p2;
-        }
-        const int64_t nv = S * K * 3;
-        const float mvf = (float)(s1 / (double)nv);
-        {
-            float acc = 0.0f;
-            int64_t i = 0;
-            for (; i < nv; i += 4096) {  /* float blocks, double total */
-                const int64_t e = i + 4096 < nv ? i + 4096 : nv;
-                acc = 0.0f;
-#pragma omp simd reduction(+:acc)
-                for (int64_t u = i; u < e; ++u) { const float d = vx[u] - mvf; acc += d * d; }
-                s2 += acc;
-            }
-        }
-        const float rx = (float)(1.0 / (sqrt(s2 / (double)(nv - 1)) + 1e-5));
-#pragma omp simd
-        for (int64_t i = 0; i < nv; ++i) vx[i] *= rx;
-        TIC(7);
-        /* std of feature offsets: float partials per centre, double totals */
-        double f1 = 0.0, f2 = 0.0;
-        for (int64_t c = 0; c < S; ++c) {
-            const float *cf = feat + cidx[c] * Dp;
-            float a1 = 0.0f, a2 = 0.0f;
-            for (int64_t t = 0; t < K; ++t) {
-                const float *row = feat + (int64_t)nb[c * K + t] * Dp;
-#pragma omp simd reduction(+:a1, a2) aligned(row, cf : 64)
-                for (int64_t d = 0; d < Dp; ++d) { float e = row[d] - cf[d]; a1 += e; a2 += e * e; }
-            }
-            f1 += a1; f2 += a2;
-        }
-        const double nf = (double)(S * K * D);
-        double var = (f2 - f1 * f1 / nf) / (nf - 1.0);
-        if (var < 0.0) var = 0.0;
-        const float rf = (float)(1.0 / (sqrt(var) + 1e-5));
-        TOC(7, 7);
-        TOC(3, 2);
-        TIC(4);
-        /* per-channel centre and axis of the pe channels (padding lanes: ignored) */
-        for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
-        for (int64_t d = 0; d < D2; ++d) { cc[d] = cents[d % nc]; ax[d] = (int32_t)(d / nc); }
-        sep_t fxs, *fx = NULL;
-        if (sep_ok(nc, (double)q)) {
-            /* grid from the exact linspace formula, in double, rounded once */
-            const double h = 2.0 / (double)(nc + 1), b0 = -1.0 + h, qd = (double)q;
-            fxs.n = nc;
-            fxs.M = (nc + 7) / 8;
-            fxs.q = q;
-            fxs.h2q = (float)(-2.0 * qd * h);
-            fxs.W = (float)(1.0 + sqrt(87.0 / fabs(qd)));
-            for (int64_t m = 0; m < fxs.M; ++m) {
-                const double bm = b0 + 8.0 * (double)m * h;
-                sepb[m] = (float)bm;
-                for (int l = 0; l < 8; ++l)
-                    sepT[m * 8 + l] = (float)exp(2.0 * qd * l * h * bm + qd * l * l * h * h);
-            }
-            fxs.b = sepb;
-            fxs.T = sepT;
-            fxs.A = sepA;
-            fxs.E = sepE;
-            fx = &fxs;
-        }
-#if defined(__AVX512F__) && !defined(PGN_NO_D32)
-        if (!fx && D > 16 && D <= 32) {
-            /* register-resident path; pe lanes: channels [0, 32) and [D, D + 32) */
-            const float sc = sqrtf(-q * 1.44269504088896341f);
-            float ccs[64];
-            __mmask16 m1[4] = {0}, m2[4] = {0};
-            for (int i = 0; i < 64; ++i) {
-                const int64_t ch = i < 32 ? i : D + (i - 32);
-                const int axis = ch < D2 ? (int)(ch / nc) : 0;
-                ccs[i] = ch < D2 ? cents[ch % nc] * sc : 0.0f;
-                if (axis >= 1) m1[i / 16] |= (__mmask16)(1u << (i % 16));
-                if (axis >= 2) m2[i / 16] |= (__mmask16)(1u << (i % 16));
-            }
-            aggregate_d32_avx512(feat, D, cidx, nb, S, K, vx, rf, ccs, m1, m2, sc, nfeat, mx);
-        } else
-#endif
-        stage_aggregate(feat, D, cidx, nb, S, K, vx, rf, cc, ax, q, nfeat, pe, PS, mx, sm, fx);
-        TOC(4, 3 + st);
-        cents += nc;
-        /* global max and mean over centres */
-        for (int64_t d = 0; d < D2; ++d) { o[d] = -INFINITY; o[D2 + d] = 0.0f; }
-        for (int64_t c = 0; c < S; ++c) {
-            const float *rr = nfeat + c * D2p;
-            for (int64_t d = 0; d < D2; ++d) { o[d] = rr[d] > o[d] ? rr[d] : o[d]; o[D2 + d] += rr[d]; }
-        }
-        for (int64_t d = 0; d < D2; ++d) o[D2 + d] /= (float)S;
-        o += 2 * D2;
-        float *tmp = feat; feat = nfeat; nfeat = tmp;
-        memcpy(xyz, cxyz, sizeof(float) * (size_t)S * 3);
-        n = S;
-        D = D2;
-    }
-done:
-    free(featA); free(featB); free(xyz); free(cxyz); free(soa); free(scratch); free(vx);
-    free(vec); free(pe); free(ax); free(cidx); free(nb); free(keys);
-    free(sepb); free(sepT); free(sepA); free(sepE);
-    return rc;
-}
-
-/* Encode clouds [0, count): xyz (count, num_points, 3) -> out (count, feature_dim). */
-int pgn_encode(const float *xyz, int64_t count, int64_t num_points, int64_t init_dim,
-               int64_t stages, int64_t k, float sigma, const float *cents, int64_t feature_dim,
-               float *out) {
-    pgn_cfg cfg = {num_points, init_dim, stages, k, sigma};
-    for (int64_t b = 0; b < count; ++b) {
-        int rc = encode_one(xyz + b * num_points * 3, &cfg, cents, out + b * feature_dim);
-        if (rc) return rc;
-    }
-    return 0;
+    const double L = (double)(B - 1);  /* largest power of P in a block */
+    return n >= SEP_MIN_N && 2.0 * L * aq * h * (1.0 + W) + L * L * aq * h * h < 80.0
+           && L * h * sqrt(aq) < 3.8;
 }

@@ -1,0 +1,143 @@
+"""Two-stage search for large banks: an int8 coarse scan, then exact rescoring.
+
+The kernel vote of a query, sum over entries of exp(-gamma (1 - cos)) per class, is
+dominated by the nearest entries at the gammas the banks use (50-200): an entry 0.1
+below the best cosine weighs e^-5 (gamma 50) to e^-20 (gamma 200) of it. A lone query
+against a float32 bank must read the whole bank (100k x 512 x 4 B = 205 MB: ~7 ms at
+this core's ~28 GB/s). Instead:
+
+1. coarse pass: the bank rotated onto its principal axes (an orthogonal rotation, so
+   dot products are unchanged), the leading `coarse_dims` coordinates kept as int8 (a
+   scale per coordinate); one int32 dot product per entry reads 1/16 of the bytes;
+2. the `candidates` best coarse scores are rescored exactly (float32, the full rows);
+3. votes come from those candidates only; every other entry's vote counts as 0.
+
+Entries outside the candidates are far enough below the best that their votes barely
+count; when one would have changed the label, the labels differ: `bench` and
+`scripts/search_agreement.py` report how often against the full float32 search.
+
+Use (the classifier's wiring is the integrator's): `index = BankIndex(feats, labels,
+num_classes)` once per bank, then `index.scores(query, gamma)` wherever
+`class_scores(query, feats, labels, num_classes, gamma)` is called with large banks;
+both take unit rows (the bank transform applied) and return (B, C) vote shares.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from point_gn_ros.core import kernels
+
+# Rows used to find the principal axes (a sample: the rotation only steers the coarse
+# pass, the rescoring is exact whatever it is).
+_PCA_ROWS = 20_000
+
+
+def vote_shares(sims: np.ndarray, labels: np.ndarray, num_classes: int,
+                gamma: float) -> np.ndarray:
+    """Kernel-vote shares like classifier.votes_from_similarity, for one query.
+
+    sims: (M,) cosines of the entries that vote; labels: (M,) int -> (C,) float32, sums
+    to 1. Evaluated in the log domain (the best entry weighs exp(0)) so large gammas
+    do not underflow.
+    """
+    logits = (sims.astype(np.float64) - 1.0) * gamma
+    w = np.exp(logits - logits.max())
+    votes = np.bincount(labels, weights=w, minlength=num_classes)
+    return (votes / votes.sum()).astype(np.float32)
+
+
+class BankIndex:
+    """Two-stage search over a bank's (transformed, unit-row) features.
+
+    features: (N, d) float32 unit rows; labels: (N,) int class ids in [0, num_classes);
+    coarse_dims: int8 coordinates per entry in the coarse pass (a multiple of 32, <= d);
+    candidates: entries rescored exactly per query. Memory: N x coarse_dims bytes beside
+    the float32 features (kept by reference when already float32 and C-contiguous).
+    """
+
+    def __init__(self, features: np.ndarray, labels: np.ndarray, num_classes: int,
+                 coarse_dims: int = 128, candidates: int = 512) -> None:
+        feats = np.ascontiguousarray(features, dtype=np.float32)
+        if feats.ndim != 2 or feats.shape[0] == 0:
+            raise ValueError(f'features must be (N, d) with N >= 1, got {feats.shape}')
+        n, d = feats.shape
+        labels = np.asarray(labels).astype(np.int64, copy=False).reshape(-1)
+        if labels.shape[0] != n:
+            raise ValueError(f'{labels.shape[0]} labels for {n} entries')
+        if labels.min() < 0 or labels.max() >= num_classes:
+            raise ValueError(f'labels outside [0, {num_classes})')
+        self.features, self.labels, self.num_classes = feats, labels, int(num_classes)
+        self.candidates = max(1, int(candidates))
+        self._lib = kernels.load()
+        r = min(d, max(32, coarse_dims // 32 * 32))
+        # Principal axes of the (uncentred) second moment: they carry the most of every
+        # dot product, so the leading coordinates approximate the cosines best.
+        sample = feats[::max(1, n // _PCA_ROWS)]
+        evals, evecs = np.linalg.eigh((sample.T @ sample).astype(np.float64))
+        order = np.argsort(evals)[::-1][:r]
+        self.rotation = np.ascontiguousarray(evecs[:, order], dtype=np.float32)  # (d, r)
+        # share of the bank's squared norms on the coarse coordinates: the closer to 1,
+        # the better the coarse pass ranks (shipped bank, 128 of 512: 0.93)
+        self.coarse_energy = float(evals[order].sum() / max(evals.sum(), 1e-30))
+        z = feats @ self.rotation                                         # (N, r)
+        self.scale = np.maximum(np.abs(z).max(axis=0), 1e-12) / 127.0     # (r,)
+        self.codes = np.ascontiguousarray(np.rint(z / self.scale), dtype=np.int8)
+
+    @property
+    def coarse_dims(self) -> int:
+        return int(self.codes.shape[1])
+
+    def candidates_for(self, q: np.ndarray) -> np.ndarray:
+        """Coarse pass for one query q (d,) float32 -> (M,) int32 entry ids, unordered."""
+        n, m = self.codes.shape[0], min(self.candidates, self.codes.shape[0])
+        qs = (q @ self.rotation) * self.scale            # coarse score = codes @ qs
+        top = float(np.abs(qs).max())
+        q8 = np.rint(qs * (127.0 / top) if top > 0 else qs).astype(np.int8)
+        if self._lib is None:  # no C compiler: the same pass in numpy
+            coarse = self.codes.astype(np.int32) @ q8.astype(np.int32)
+            return np.sort(np.argsort(-coarse, kind='stable')[:m]).astype(np.int32)
+        coarse = np.empty(n, np.int32)
+        self._lib.pgn_scan_i8(self.codes.ctypes.data, n, self.coarse_dims, q8.ctypes.data,
+                              coarse.ctypes.data)
+        idx = np.empty(m, np.int32)
+        keys = np.empty(n, np.int64)
+        got = self._lib.pgn_top_m(coarse.ctypes.data, n, m, idx.ctypes.data, keys.ctypes.data)
+        return idx[:got]
+
+    def _dots(self, q: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+        """Exact float32 cosines of q (d,) with the given rows (all when None)."""
+        if self._lib is None:
+            return (self.features if rows is None else self.features[rows]) @ q
+        m = self.features.shape[0] if rows is None else rows.shape[0]
+        out = np.empty(m, np.float32)
+        self._lib.pgn_scan_f32(self.features.ctypes.data, self.features.shape[1],
+                               None if rows is None else rows.ctypes.data, m, q.ctypes.data,
+                               out.ctypes.data)
+        return out
+
+    def _check(self, query: np.ndarray) -> np.ndarray:
+        q = np.ascontiguousarray(np.asarray(query, dtype=np.float32))
+        if q.ndim != 2 or q.shape[1] != self.features.shape[1]:
+            raise ValueError(f'expected queries (B, {self.features.shape[1]}), got {q.shape}')
+        return q
+
+    def scores(self, query: np.ndarray, gamma: float) -> np.ndarray:
+        """Two-stage vote shares: query (B, d) unit rows -> (B, C) float32, rows sum to 1.
+
+        Each query is searched alone, so a result never depends on the batch.
+        """
+        q = self._check(query)
+        out = np.empty((q.shape[0], self.num_classes), np.float32)
+        for b in range(q.shape[0]):
+            rows = self.candidates_for(q[b])
+            out[b] = vote_shares(self._dots(q[b], rows), self.labels[rows], self.num_classes,
+                                 gamma)
+        return out
+
+    def exact_scores(self, query: np.ndarray, gamma: float) -> np.ndarray:
+        """Reference: every entry votes, float32 cosines. (B, d) -> (B, C) float32."""
+        q = self._check(query)
+        return np.stack([vote_shares(self._dots(row, None), self.labels, self.num_classes,
+                                     gamma) for row in q]) if len(q) else \
+            np.zeros((0, self.num_classes), np.float32)

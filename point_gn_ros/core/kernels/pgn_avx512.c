@@ -1,0 +1,281 @@
+/* Point-GN stage kernels with AVX-512 intrinsics (only where the compiler targets
+ * AVX-512; elsewhere this file is empty and pgn_encode.c uses the portable kernels). */
+#include "pgn_common.h"
+
+#if defined(__AVX512F__)
+/* Stage aggregation for 16 < D <= 32 (stage 1 of the default encoder, D = 27) with AVX-512:
+ * everything for one centre stays in registers. Lanes: P = pe channels [0, 32) for the
+ * offset half, Q = pe channels [D, D + 32) for the centre half. Gaussians as
+ * 2^-(u s)^2 with s^2 = -q log2(e): rounding splits the exponent, a degree-5 polynomial
+ * gives 2^r on [-1/2, 1/2] (PGN_EXP2_C*) and scalef applies 2^k exactly, also
+ * for huge k (-> 0), so no clamping is needed.
+ * ccs: (64,) pe-lane centres times s; m1, m2: (4,) lane masks axis >= 1, axis >= 2. */
+void pgn_aggregate_d32_avx512(const float *feat, int64_t D, const int64_t *cidx,
+                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                                 float r, const float *ccs, const __mmask16 *m1,
+                                 const __mmask16 *m2, float s, float *out, float *acc) {
+    const int64_t Dp = 32, D2p = padded(2 * D);
+    const __m512 c0 = _mm512_set1_ps(PGN_EXP2_C0), c1 = _mm512_set1_ps(PGN_EXP2_C1);
+    const __m512 c2 = _mm512_set1_ps(PGN_EXP2_C2), c3 = _mm512_set1_ps(PGN_EXP2_C3);
+    const __m512 c4 = _mm512_set1_ps(PGN_EXP2_C4), c5 = _mm512_set1_ps(PGN_EXP2_C5);
+    const __m512 vr = _mm512_set1_ps(r);
+    const __m512 cc0 = _mm512_loadu_ps(ccs), cc1 = _mm512_loadu_ps(ccs + 16);
+    const __m512 cc2 = _mm512_loadu_ps(ccs + 32), cc3 = _mm512_loadu_ps(ccs + 48);
+    const float invk = 1.0f / (float)K;
+#define PGN_PE(cc, i, dst)                                                          \
+    do {                                                                            \
+        __m512 va_ = _mm512_mask_blend_ps(m1[i], vb0, vb1);                         \
+        va_ = _mm512_mask_blend_ps(m2[i], va_, vb2);                                \
+        const __m512 u_ = _mm512_sub_ps(cc, va_);                                   \
+        const __m512 t_ = _mm512_mul_ps(u_, u_);                                    \
+        const __m512 k_ = _mm512_roundscale_ps(t_, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC); \
+        const __m512 f_ = _mm512_sub_ps(k_, t_);  /* 2^-t = 2^f * 2^-k, |f| <= 1/2 */ \
+        __m512 p_ = _mm512_fmadd_ps(c5, f_, c4);                                   \
+        p_ = _mm512_fmadd_ps(p_, f_, c3);                                           \
+        p_ = _mm512_fmadd_ps(p_, f_, c2);                                           \
+        p_ = _mm512_fmadd_ps(p_, f_, c1);                                           \
+        p_ = _mm512_fmadd_ps(p_, f_, c0);                                           \
+        dst = _mm512_scalef_ps(p_, _mm512_sub_ps(_mm512_setzero_ps(), k_));         \
+    } while (0)
+    for (int64_t c = 0; c < S; ++c) {
+        const float *cf = feat + cidx[c] * Dp;
+        const __m512 cf0 = _mm512_load_ps(cf), cf1 = _mm512_load_ps(cf + 16);
+        __m512 mx0 = _mm512_set1_ps(-INFINITY), mx1 = mx0, mx2 = mx0, mx3 = mx0;
+        __m512 sm0 = _mm512_setzero_ps(), sm1 = sm0, sm2 = sm0, sm3 = sm0;
+        const int32_t *nr = nb + c * K;
+        const float *vc = vx + c * K * 3;
+        for (int64_t t = 0; t < K; ++t) {
+            const __m512 vb0 = _mm512_set1_ps(vc[t * 3] * s);
+            const __m512 vb1 = _mm512_set1_ps(vc[t * 3 + 1] * s);
+            const __m512 vb2 = _mm512_set1_ps(vc[t * 3 + 2] * s);
+            __m512 p0, p1, q0, q1;
+            PGN_PE(cc0, 0, p0);
+            PGN_PE(cc1, 1, p1);
+            PGN_PE(cc2, 2, q0);
+            PGN_PE(cc3, 3, q1);
+            const float *row = feat + (int64_t)nr[t] * Dp;
+            const __m512 f0 = _mm512_mul_ps(_mm512_sub_ps(_mm512_load_ps(row), cf0), vr);
+            const __m512 f1 = _mm512_mul_ps(_mm512_sub_ps(_mm512_load_ps(row + 16), cf1), vr);
+            const __m512 w0 = _mm512_mul_ps(_mm512_add_ps(f0, p0), p0);
+            const __m512 w1 = _mm512_mul_ps(_mm512_add_ps(f1, p1), p1);
+            const __m512 w2 = _mm512_mul_ps(_mm512_add_ps(cf0, q0), q0);
+            const __m512 w3 = _mm512_mul_ps(_mm512_add_ps(cf1, q1), q1);
+            mx0 = _mm512_max_ps(mx0, w0); sm0 = _mm512_add_ps(sm0, w0);
+            mx1 = _mm512_max_ps(mx1, w1); sm1 = _mm512_add_ps(sm1, w1);
+            mx2 = _mm512_max_ps(mx2, w2); sm2 = _mm512_add_ps(sm2, w2);
+            mx3 = _mm512_max_ps(mx3, w3); sm3 = _mm512_add_ps(sm3, w3);
+        }
+        const __m512 ik = _mm512_set1_ps(invk);
+        _mm512_storeu_ps(acc, _mm512_fmadd_ps(sm0, ik, mx0));
+        _mm512_storeu_ps(acc + 16, _mm512_fmadd_ps(sm1, ik, mx1));
+        _mm512_storeu_ps(acc + 32, _mm512_fmadd_ps(sm2, ik, mx2));
+        _mm512_storeu_ps(acc + 48, _mm512_fmadd_ps(sm3, ik, mx3));
+        float *o = out + c * D2p;
+        for (int64_t d = 0; d < D; ++d) o[d] = gelu(acc[d]);
+        for (int64_t d = 0; d < D; ++d) o[D + d] = gelu(acc[32 + d]);
+        for (int64_t d = 2 * D; d < D2p; ++d) o[d] = 0.0f;
+    }
+#undef PGN_PE
+}
+#endif
+
+#if defined(__AVX512F__) && defined(__AVX512VL__)
+/* Separable stages with AVX-512: pe is never stored. The 2D pe channels are walked as
+ * the (axis, block) groups of 8 of the separable form, channel a n + 8 m + l, so a
+ * group's pe for neighbour t is one broadcast times a vector:
+ * A[t, a, m] * (T[m, 0..8) * P[t, a]^(0..8)), the powers by masked multiplies of
+ * P, P^2, P^4 (the same products as pgn_sep_prepare's E, so the same values). Channel ch
+ * aggregates ((row[ch] - cf[ch]) r + pe) pe for ch < D and (cf[ch - D] + pe) pe
+ * above (G holds cf[ch] / cf[ch - D]); lanes past an axis's n centres are masked off.
+ * mx, sm, G: 2D + 16 floats of scratch. Four neighbours a pass, like pgn_stage_aggregate. */
+static inline __attribute__((always_inline)) void sep_pass(
+        const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
+        int64_t D, const float *G, float r, float *mx, float *sm) {
+    const int64_t n = fx->n, M = fx->M;
+    const __m256 one = _mm256_set1_ps(1.0f), vr = _mm256_set1_ps(r);
+    for (int a = 0; a < 3; ++a) {
+        __m256 e[4];
+        for (int i = 0; i < nt; ++i) {
+            const int64_t ta = 3 * (t0 + i) + a;
+            __m256 v = one;
+            v = _mm256_mask_mul_ps(v, 0xAA, v, _mm256_set1_ps(fx->E[1 * nta + ta]));
+            v = _mm256_mask_mul_ps(v, 0xCC, v, _mm256_set1_ps(fx->E[2 * nta + ta]));
+            e[i] = _mm256_mask_mul_ps(v, 0xF0, v, _mm256_set1_ps(fx->E[4 * nta + ta]));
+        }
+        for (int64_t m = 0; m < M; ++m) {
+            const int64_t ch = a * n + 8 * m;
+            const int64_t nv = n - 8 * m < 8 ? n - 8 * m : 8;
+            const __mmask8 valid = (__mmask8)((1u << nv) - 1u);
+            const int64_t no = D - ch < 0 ? 0 : (D - ch > 8 ? 8 : D - ch);
+            const __mmask8 off = (__mmask8)(((1u << no) - 1u) & valid);  /* ch + l < D */
+            const __m256 T = _mm256_loadu_ps(fx->T + 8 * m);
+            const __m256 g = _mm256_loadu_ps(G + ch);
+            __m256 w[4];
+            for (int i = 0; i < nt; ++i) {
+                const __m256 am = _mm256_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]);
+                const __m256 pe = _mm256_mul_ps(am, _mm256_mul_ps(T, e[i]));
+                __m256 f = g;
+                if (off) {
+                    const __m256 row = _mm256_maskz_loadu_ps(off, rows[i] + ch);
+                    f = _mm256_mask_blend_ps(off, g,
+                                             _mm256_fmadd_ps(_mm256_sub_ps(row, g), vr, pe));
+                    w[i] = _mm256_mul_ps(_mm256_mask_blend_ps(off, _mm256_add_ps(f, pe), f), pe);
+                } else {
+                    w[i] = _mm256_mul_ps(_mm256_add_ps(f, pe), pe);
+                }
+            }
+            __m256 wm = w[0], ws = w[0];
+            if (nt == 4) {
+                wm = _mm256_max_ps(_mm256_max_ps(w[0], w[1]), _mm256_max_ps(w[2], w[3]));
+                ws = _mm256_add_ps(_mm256_add_ps(w[0], w[1]), _mm256_add_ps(w[2], w[3]));
+            }
+            _mm256_mask_storeu_ps(mx + ch, valid, _mm256_max_ps(wm, _mm256_loadu_ps(mx + ch)));
+            _mm256_mask_storeu_ps(sm + ch, valid, _mm256_add_ps(_mm256_loadu_ps(sm + ch), ws));
+        }
+    }
+}
+
+/* sep_pass with blocks of 16 (one 512-bit vector a block): P^0..15 by masked multiplies
+ * of P, P^2, P^4, P^8. */
+static inline __attribute__((always_inline)) void sep_pass16(
+        const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
+        int64_t D, const float *G, float r, float *mx, float *sm) {
+    const int64_t n = fx->n, M = fx->M;
+    const __m512 one = _mm512_set1_ps(1.0f), vr = _mm512_set1_ps(r);
+    for (int a = 0; a < 3; ++a) {
+        __m512 e[4];
+        for (int i = 0; i < nt; ++i) {
+            const int64_t ta = 3 * (t0 + i) + a;
+            __m512 v = one;
+            v = _mm512_mask_mul_ps(v, 0xAAAA, v, _mm512_set1_ps(fx->E[1 * nta + ta]));
+            v = _mm512_mask_mul_ps(v, 0xCCCC, v, _mm512_set1_ps(fx->E[2 * nta + ta]));
+            v = _mm512_mask_mul_ps(v, 0xF0F0, v, _mm512_set1_ps(fx->E[4 * nta + ta]));
+            e[i] = _mm512_mask_mul_ps(v, 0xFF00, v, _mm512_set1_ps(fx->E[8 * nta + ta]));
+        }
+        for (int64_t m = 0; m < M; ++m) {
+            const int64_t ch = a * n + 16 * m;
+            const int64_t nv = n - 16 * m < 16 ? n - 16 * m : 16;
+            const __mmask16 valid = (__mmask16)((1u << nv) - 1u);
+            const int64_t no = D - ch < 0 ? 0 : (D - ch > 16 ? 16 : D - ch);
+            const __mmask16 off = (__mmask16)(((1u << no) - 1u) & valid);  /* ch + l < D */
+            const __m512 T = _mm512_loadu_ps(fx->T + 16 * m);
+            const __m512 g = _mm512_loadu_ps(G + ch);
+            __m512 w[4];
+            for (int i = 0; i < nt; ++i) {
+                const __m512 am = _mm512_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]);
+                const __m512 pe = _mm512_mul_ps(am, _mm512_mul_ps(T, e[i]));
+                if (off) {
+                    const __m512 row = _mm512_maskz_loadu_ps(off, rows[i] + ch);
+                    const __m512 f = _mm512_mask_blend_ps(
+                        off, g, _mm512_fmadd_ps(_mm512_sub_ps(row, g), vr, pe));
+                    w[i] = _mm512_mul_ps(_mm512_mask_blend_ps(off, _mm512_add_ps(f, pe), f), pe);
+                } else {
+                    w[i] = _mm512_mul_ps(_mm512_add_ps(g, pe), pe);
+                }
+            }
+            __m512 wm = w[0], ws = w[0];
+            if (nt == 4) {
+                wm = _mm512_max_ps(_mm512_max_ps(w[0], w[1]), _mm512_max_ps(w[2], w[3]));
+                ws = _mm512_add_ps(_mm512_add_ps(w[0], w[1]), _mm512_add_ps(w[2], w[3]));
+            }
+            _mm512_mask_storeu_ps(mx + ch, valid, _mm512_max_ps(wm, _mm512_loadu_ps(mx + ch)));
+            _mm512_mask_storeu_ps(sm + ch, valid, _mm512_add_ps(_mm512_loadu_ps(sm + ch), ws));
+        }
+    }
+}
+
+void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
+                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                                 float r, float *out, float *mx, float *sm, float *G,
+                                 sep_t *fx) {
+    const int64_t Dp = padded(D), D2 = 2 * D, D2p = padded(D2), nta = 3 * K;
+    const float invk = 1.0f / (float)K;
+    for (int64_t c = 0; c < S; ++c) {
+        const float *cf = feat + cidx[c] * Dp;
+        const int32_t *nr = nb + c * K;
+        for (int64_t d = 0; d < D; ++d) { G[d] = cf[d]; G[D + d] = cf[d]; }
+        for (int64_t d = D2; d < D2 + 32; ++d) G[d] = 0.0f;
+        for (int64_t d = 0; d < D2 + 32; ++d) { mx[d] = -INFINITY; sm[d] = 0.0f; }
+        pgn_sep_prepare(fx, vx + c * K * 3, K);
+        int64_t t = 0;
+        for (; t + 4 <= K; t += 4) {
+            const float *rows[4] = {feat + (int64_t)nr[t] * Dp, feat + (int64_t)nr[t + 1] * Dp,
+                                    feat + (int64_t)nr[t + 2] * Dp, feat + (int64_t)nr[t + 3] * Dp};
+            if (fx->B == 16) sep_pass16(rows, 4, t, nta, fx, D, G, r, mx, sm);
+            else sep_pass(rows, 4, t, nta, fx, D, G, r, mx, sm);
+        }
+        for (; t < K; ++t) {
+            const float *rows[1] = {feat + (int64_t)nr[t] * Dp};
+            if (fx->B == 16) sep_pass16(rows, 1, t, nta, fx, D, G, r, mx, sm);
+            else sep_pass(rows, 1, t, nta, fx, D, G, r, mx, sm);
+        }
+        float *o = out + c * D2p;
+        for (int64_t d = 0; d < D2; ++d) o[d] = gelu(mx[d] + sm[d] * invk);
+        for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
+    }
+}
+#endif
+
+#if defined(__AVX512F__)
+/* Sums of e = row[d] - cf[d] and e^2 over one centre's K neighbour rows, channels
+ * [0, Dp), with the per-channel partials in registers: chunks of up to 4 vectors, two
+ * sets of accumulators (even / odd neighbours) so the add chains overlap. */
+#define PGN_STDCHUNK(NV)                                                                 \
+    static inline void stdchunk##NV(const float *feat, int64_t Dp, const int32_t *nr,    \
+                                    int64_t K, const float *cf, __m512 *t1, __m512 *t2) { \
+        __m512 a1[2][NV], a2[2][NV], g[NV];                                              \
+        for (int v = 0; v < NV; ++v) {                                                   \
+            g[v] = _mm512_load_ps(cf + 16 * v);                                          \
+            a1[0][v] = a1[1][v] = a2[0][v] = a2[1][v] = _mm512_setzero_ps();             \
+        }                                                                                \
+        int64_t t = 0;                                                                   \
+        for (; t + 2 <= K; t += 2) {                                                     \
+            const float *r0 = feat + (int64_t)nr[t] * Dp;                                \
+            const float *r1 = feat + (int64_t)nr[t + 1] * Dp;                            \
+            for (int v = 0; v < NV; ++v) {                                               \
+                const __m512 e0 = _mm512_sub_ps(_mm512_load_ps(r0 + 16 * v), g[v]);      \
+                const __m512 e1 = _mm512_sub_ps(_mm512_load_ps(r1 + 16 * v), g[v]);      \
+                a1[0][v] = _mm512_add_ps(a1[0][v], e0);                                  \
+                a2[0][v] = _mm512_fmadd_ps(e0, e0, a2[0][v]);                            \
+                a1[1][v] = _mm512_add_ps(a1[1][v], e1);                                  \
+                a2[1][v] = _mm512_fmadd_ps(e1, e1, a2[1][v]);                            \
+            }                                                                            \
+        }                                                                                \
+        if (t < K) {                                                                     \
+            const float *r0 = feat + (int64_t)nr[t] * Dp;                                \
+            for (int v = 0; v < NV; ++v) {                                               \
+                const __m512 e0 = _mm512_sub_ps(_mm512_load_ps(r0 + 16 * v), g[v]);      \
+                a1[0][v] = _mm512_add_ps(a1[0][v], e0);                                  \
+                a2[0][v] = _mm512_fmadd_ps(e0, e0, a2[0][v]);                            \
+            }                                                                            \
+        }                                                                                \
+        for (int v = 0; v < NV; ++v) {                                                   \
+            *t1 = _mm512_add_ps(*t1, _mm512_add_ps(a1[0][v], a1[1][v]));                 \
+            *t2 = _mm512_add_ps(*t2, _mm512_add_ps(a2[0][v], a2[1][v]));                 \
+        }                                                                                \
+    }
+PGN_STDCHUNK(1)
+PGN_STDCHUNK(2)
+PGN_STDCHUNK(3)
+PGN_STDCHUNK(4)
+#undef PGN_STDCHUNK
+
+void pgn_std_centre_avx512(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,
+                              const float *cf, float *a1, float *a2) {
+    __m512 t1 = _mm512_setzero_ps(), t2 = t1;
+    int64_t v = 0;
+    const int64_t nv = Dp / 16;
+    for (; v + 4 <= nv; v += 4) stdchunk4(feat + 16 * v, Dp, nr, K, cf + 16 * v, &t1, &t2);
+    switch (nv - v) {
+        case 3: stdchunk3(feat + 16 * v, Dp, nr, K, cf + 16 * v, &t1, &t2); break;
+        case 2: stdchunk2(feat + 16 * v, Dp, nr, K, cf + 16 * v, &t1, &t2); break;
+        case 1: stdchunk1(feat + 16 * v, Dp, nr, K, cf + 16 * v, &t1, &t2); break;
+        default: break;
+    }
+    *a1 = _mm512_reduce_add_ps(t1);
+    *a2 = _mm512_reduce_add_ps(t2);
+}
+#endif
+
+/* ISO C wants a non-empty translation unit when AVX-512 is off */
+typedef int pgn_avx512_unit;

@@ -1,0 +1,92 @@
+/* Shared by the encoder's C files: pgn_stage.c (portable stage kernels), pgn_avx512.c
+ * (AVX-512 stage kernels, compiled only where -march=native enables them) and
+ * pgn_encode.c (one cloud end to end, the two-thread lone-cloud runtime). Hashed with the
+ * sources for the kernel cache key (kernels/__init__.py).
+ */
+#ifndef PGN_COMMON_H
+#define PGN_COMMON_H
+
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
+
+#define PAD 16
+/* Separable Gaussians pay off from this many centres per axis (stage 2 on). */
+#ifndef SEP_MIN_N
+#define SEP_MIN_N 36
+#endif
+static inline int64_t padded(int64_t d) { return (d + PAD - 1) / PAD * PAD; }
+
+static inline float gelu(float x) { return 0.5f * x * (1.0f + erff(x * 0.70710678118654752f)); }
+
+/* Separable Gaussians on a uniform grid of n centres b_0 + j h (j < n):
+ * exp(q (b_0 + (8 m + l) h - w)^2) = A_m(w) * T[m][l] * P(w)^l with
+ * A_m(w) = exp(q (b_m - w)^2), b_m = b_0 + 8 m h, T[m][l] = exp(2 q l h b_m + q l^2 h^2),
+ * P(w) = exp(-2 q h w). w is clamped to [-W, W], W = 1 + sqrt(87 / |q|): beyond it every
+ * Gaussian is below 2e-38 either way. pgn_sep_ok() admits only grids where, with blocks of B,
+ * every factor and partial product stays inside float range and an underflowing A_m
+ * only ever drops values below e^-30. */
+typedef struct {
+    int64_t n, M;     /* centres per axis, blocks of B */
+    int B;            /* block width: 8 (portable and make_pe), 16 (AVX-512 sep_pass16) */
+    float q, h2q;     /* q = -1 / (2 sigma^2), h2q = -2 q h */
+    float W;          /* clamp for w */
+    const float *b;   /* (M,) block base centres */
+    const float *T;   /* (M, 8) */
+    float *A;         /* (K * 3, M) scratch */
+    float *E;         /* (K * 3, 8) scratch */
+} sep_t;
+
+/* 2^f on [-1/2, 1/2]: degree-5 polynomial with p(0) = 1 exactly, minimax for the relative
+ * error (9.1e-8 in exact arithmetic; the degree-6 Taylor form used before had 1.2e-7 and
+ * one FMA more). p(0) = 1 keeps Gaussians of exact-integer exponent unbiased. */
+#define PGN_EXP2_C0 1.0f
+#define PGN_EXP2_C1 0.6931469776023396f
+#define PGN_EXP2_C2 0.24022242081246917f
+#define PGN_EXP2_C3 0.0555073373969377f
+#define PGN_EXP2_C4 0.009671512829242206f
+#define PGN_EXP2_C5 0.001326472815781153f
+
+#if defined(__AVX512F__)
+/* 2^-t for t >= 0, 16 lanes: t = k - f with k rounded, |f| <= 1/2, the polynomial for
+ * 2^f and scalef for the exact 2^-k. */
+static inline __m512 exp2_neg_avx512(__m512 t) {
+    const __m512 k = _mm512_roundscale_ps(t, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const __m512 f = _mm512_sub_ps(k, t);
+    __m512 p = _mm512_fmadd_ps(_mm512_set1_ps(PGN_EXP2_C5), f, _mm512_set1_ps(PGN_EXP2_C4));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(PGN_EXP2_C3));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(PGN_EXP2_C2));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(PGN_EXP2_C1));
+    p = _mm512_fmadd_ps(p, f, _mm512_set1_ps(PGN_EXP2_C0));
+    return _mm512_scalef_ps(p, _mm512_sub_ps(_mm512_setzero_ps(), k));
+}
+#endif
+
+/* pgn_stage.c */
+void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K);
+void pgn_stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, const int32_t *nb,
+                         int64_t S, int64_t K, const float *vx, float r, const float *cc,
+                         const int32_t *ax, float q, float *out, float *pe, int64_t PS,
+                         float *mx, float *sm, sep_t *fx);
+int pgn_sep_ok(int64_t n, double q, int B);
+
+/* pgn_avx512.c */
+#if defined(__AVX512F__)
+void pgn_aggregate_d32_avx512(const float *feat, int64_t D, const int64_t *cidx,
+                              const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                              float r, const float *ccs, const __mmask16 *m1,
+                              const __mmask16 *m2, float s, float *out, float *acc);
+void pgn_std_centre_avx512(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,
+                           const float *cf, float *a1, float *a2);
+#endif
+#if defined(__AVX512F__) && defined(__AVX512VL__)
+void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
+                              const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                              float r, float *out, float *mx, float *sm, float *G, sep_t *fx);
+#endif
+
+#endif

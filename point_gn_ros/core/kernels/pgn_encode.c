@@ -1,0 +1,456 @@
+/* Point-GN encoder, one cloud at a time, fused: no (S, k, D) tensor is ever built.
+ *
+ * Compiled with -O3 -march=native -ffast-math. Results are a pure function of one cloud,
+ * whatever the batch or thread, so batches are invariant; a lone cloud may share its
+ * stages with a helper thread (pgn_encode_lone), bit-identically.
+ */
+#include <pthread.h>
+#include <sched.h>
+#include <stdatomic.h>
+
+#include "pgn_common.h"
+
+void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
+             int64_t m, int64_t *idx, float *min_d);
+void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const float *cx,
+             const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
+             uint64_t *keys);
+
+int pgn_abi_version(void) { return 1; }
+
+#ifdef PGN_PROFILE
+#include <time.h>
+double pgn_prof[16];  /* per-phase thread CPU seconds; slots: bench_cmd.PROFILE_SLOTS */
+static double now(void) { struct timespec ts; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
+#define TIC(i) double _t##i = now()
+#define TOC(i, slot) pgn_prof[slot] += now() - _t##i
+#else
+#define TIC(i)
+#define TOC(i, slot)
+#endif
+
+typedef struct {
+    int64_t num_points, init_dim, stages, k;
+    float sigma;
+} pgn_cfg;
+
+/* Gaussian positional encoding of v (3 values) into pe[0..3n): axis blocks of n. */
+static inline void gpe3(const float *v, const float *cent, int64_t n, float q, float *pe) {
+    for (int a = 0; a < 3; ++a) {
+        const float va = v[a];
+        float *o = pe + a * n;
+#pragma omp simd
+        for (int64_t j = 0; j < n; ++j) {
+            float u = cent[j] - va;
+            o[j] = expf(q * u * u);
+        }
+    }
+}
+
+static void *xalloc(size_t bytes) {
+    /* 64-byte aligned, zeroed: padding lanes stay 0 (they enter sums as 0 - 0) */
+    size_t sz = (bytes + 63) / 64 * 64;
+    void *p = aligned_alloc(64, sz ? sz : 64);
+    if (p) memset(p, 0, sz ? sz : 64);
+    return p;
+}
+
+/* A lone cloud on two threads: the caller and one helper share each stage's
+ * aggregation by chunks of centres, claimed from an atomic counter. Every centre's
+ * result depends on that centre only, so the split never changes a bit. The caller
+ * works through the chunks itself and waits only for chunks the helper has claimed:
+ * a helper that is not scheduled in time costs nothing but its wake-up. */
+typedef struct agg_job {
+    const float *feat;
+    int64_t D, S, K, D2p, PS, nchunks;
+    const int64_t *cidx;
+    const int32_t *nb;
+    const float *vx, *cc;
+    const int32_t *ax;
+    float r, q;
+    float *out;
+    sep_t fx[2];          /* per thread: its own A / E scratch */
+    int use_fx, d32;
+    float *pe[2], *mx[2], *sm[2];
+#if defined(__AVX512F__)
+    const float *ccs;
+    const __mmask16 *m1, *m2;
+    float sc;
+#endif
+} agg_job;
+
+static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
+    const int64_t c0 = j->S * chunk / j->nchunks, c1 = j->S * (chunk + 1) / j->nchunks;
+    if (c1 <= c0) return;
+    const int64_t *cidx = j->cidx + c0;
+    const int32_t *nb = j->nb + c0 * j->K;
+    const float *vx = j->vx + c0 * j->K * 3;
+    float *out = j->out + c0 * j->D2p;
+#if defined(__AVX512F__) && !defined(PGN_NO_D32)
+    if (j->d32) {
+        pgn_aggregate_d32_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs, j->m1,
+                             j->m2, j->sc, out, j->mx[tid]);
+        return;
+    }
+#endif
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
+    if (j->use_fx) {
+        pgn_aggregate_sep_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
+                             j->sm[tid], j->pe[tid], &j->fx[tid]);
+        return;
+    }
+#endif
+    pgn_stage_aggregate(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cc, j->ax, j->q, out,
+                    j->pe[tid], j->PS, j->mx[tid], j->sm[tid], j->use_fx ? &j->fx[tid] : NULL);
+}
+
+typedef struct {
+    pthread_mutex_t mu;
+    pthread_cond_t cv;
+    int64_t gen;          /* job generation, under mu */
+    int quit;
+    agg_job *job;
+    _Atomic uint64_t next;  /* (generation << 32) | next unclaimed chunk */
+    _Atomic int64_t done;   /* chunks of the current job finished */
+} par_t;
+
+/* Claim and run chunks of job generation gen until none is left. */
+static void par_work(par_t *p, agg_job *job, uint64_t gen, int tid) {
+    for (;;) {
+        uint64_t v = atomic_load(&p->next);
+        if ((v >> 32) != gen || (int64_t)(v & 0xffffffffu) >= job->nchunks) return;
+        if (!atomic_compare_exchange_weak(&p->next, &v, v + 1)) continue;
+        agg_chunk(job, tid, (int64_t)(v & 0xffffffffu));
+        atomic_fetch_add(&p->done, 1);
+    }
+}
+
+static void *par_helper(void *arg) {
+    par_t *p = arg;
+    int64_t seen = 0;
+    pthread_mutex_lock(&p->mu);
+    for (;;) {
+        while (p->gen == seen && !p->quit) pthread_cond_wait(&p->cv, &p->mu);
+        if (p->quit) break;
+        seen = p->gen;
+        agg_job *job = p->job;
+        pthread_mutex_unlock(&p->mu);
+        par_work(p, job, (uint64_t)seen, 1);
+        pthread_mutex_lock(&p->mu);
+    }
+    pthread_mutex_unlock(&p->mu);
+    return NULL;
+}
+
+/* Run all chunks of job, with the helper when there is one. */
+static void par_run(par_t *p, agg_job *job) {
+    if (!p) {
+        for (int64_t i = 0; i < job->nchunks; ++i) agg_chunk(job, 0, i);
+        return;
+    }
+    pthread_mutex_lock(&p->mu);
+    const uint64_t gen = (uint64_t)++p->gen;
+    p->job = job;
+    atomic_store(&p->done, 0);
+    atomic_store(&p->next, gen << 32);
+    pthread_cond_signal(&p->cv);
+    pthread_mutex_unlock(&p->mu);
+    par_work(p, job, gen, 0);
+    for (int spin = 0; atomic_load(&p->done) < job->nchunks; ++spin)
+        if (spin > 64) sched_yield();  /* only chunks the helper is running are left */
+}
+
+/* Encode one cloud. xyz: (num_points, 3); cents: concatenated Gaussian centre
+ * tables (init block of init_dim/3, then 2*D_i/3 per stage); out: (feature_dim,).
+ * par: the helper thread's runtime for a lone cloud, or NULL.
+ * Returns 0, or -1 when out of memory. */
+static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cents, float *out,
+                      par_t *par) {
+    TIC(11);
+    const int64_t N = cfg->num_points, D0 = cfg->init_dim;
+    const float q = -0.5f / (cfg->sigma * cfg->sigma);
+    const int64_t S1 = N / 2;
+    const int64_t K1 = cfg->k < N ? cfg->k : N;
+    const int64_t Dmax = D0 << cfg->stages;  /* widest 2D */
+    /* Every stage holds S_i rows of padded(2 D_i) <= N * D0 + S_i * PAD features. */
+    const int64_t fsz = N * (D0 + PAD);
+    float *featA = xalloc(sizeof(float) * (size_t)fsz);
+    float *featB = xalloc(sizeof(float) * (size_t)fsz);
+    float *xyz = xalloc(sizeof(float) * (size_t)N * 3);
+    float *cxyz = xalloc(sizeof(float) * (size_t)N * 3);
+    float *soa = xalloc(sizeof(float) * (size_t)N * 6);
+    float *scratch = xalloc(sizeof(float) * (size_t)N);
+    float *vx = xalloc(sizeof(float) * (size_t)S1 * K1 * 3);
+    /* one scratch vector / pe buffer: a multiple of 64 bytes, since the vector loops
+     * declare their pointers 64-byte aligned */
+    const int64_t VS = padded(Dmax + 4 * PAD), PS = VS;
+    float *vec = xalloc(sizeof(float) * (size_t)VS * 3);
+    float *pe = xalloc(sizeof(float) * (size_t)PS * 4);
+    int32_t *ax = xalloc(sizeof(int32_t) * (size_t)VS);
+    int64_t *cidx = xalloc(sizeof(int64_t) * (size_t)S1);
+    const int64_t Mmax = (Dmax / 3 + 7) / 8;
+    float *sepb = xalloc(sizeof(float) * (size_t)Mmax);
+    float *sepT = xalloc(sizeof(float) * (size_t)(Mmax + 1) * 16);
+    float *sepA = xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax);
+    float *sepE = xalloc(sizeof(float) * (size_t)K1 * 3 * 9);  /* rows 0..8 of E */
+    /* the helper's own scratch (pe buffers, mx / sm, separable A / E) */
+    const int npar = par ? 2 : 1;
+    float *pe2 = par ? xalloc(sizeof(float) * (size_t)PS * 4) : NULL;
+    float *vec2 = par ? xalloc(sizeof(float) * (size_t)VS * 2) : NULL;
+    float *sepA2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax) : NULL;
+    float *sepE2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * 9) : NULL;
+    int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
+    uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
+    int rc = 0;
+    TOC(11, 11);
+    if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
+        || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE
+        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2))) {
+        rc = -1;
+        goto done;
+    }
+    float *cc = vec, *mx = vec + VS, *sm = vec + 2 * VS;
+    memcpy(xyz, xyz_in, sizeof(float) * (size_t)N * 3);
+    /* initial embedding: (N, padded(D0)) */
+    TIC(8);
+    {
+        const int64_t n0 = D0 / 3, D0p = padded(D0);
+        for (int64_t i = 0; i < N; ++i) gpe3(xyz + i * 3, cents, n0, q, featA + i * D0p);
+        cents += n0;
+    }
+    TOC(8, 8);
+    float *feat = featA, *nfeat = featB;
+    int64_t n = N, D = D0;
+    float *o = out;
+    for (int64_t st = 0; st < cfg->stages; ++st) {
+        const int64_t S = n / 2, K = cfg->k < n ? cfg->k : n, D2 = 2 * D, nc = D2 / 3;
+        const int64_t Dp = padded(D), D2p = padded(D2);
+        float *x = soa, *y = soa + n, *z = soa + 2 * n;
+        for (int64_t i = 0; i < n; ++i) { x[i] = xyz[i * 3]; y[i] = xyz[i * 3 + 1]; z[i] = xyz[i * 3 + 2]; }
+        TIC(1);
+        pgn_fps(xyz, x, y, z, n, S, cidx, scratch);
+        TOC(1, 0);
+        float *cx = soa + 3 * n, *cy = cx + S, *cz = cy + S;
+        for (int64_t c = 0; c < S; ++c) {
+            cx[c] = x[cidx[c]]; cy[c] = y[cidx[c]]; cz[c] = z[cidx[c]];
+            cxyz[c * 3] = cx[c]; cxyz[c * 3 + 1] = cy[c]; cxyz[c * 3 + 2] = cz[c];
+        }
+        TIC(2);
+        pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys);
+        TOC(2, 1);
+        TIC(3);
+        /* offsets (gathered rows of the AoS copy: no running sums, so no dependency
+         * chain per neighbour), then their unbiased std by two vectorised passes: float
+         * blocks, double totals */
+        double s1 = 0.0, s2 = 0.0;
+        for (int64_t c = 0; c < S; ++c) {
+            const float qx = cx[c], qy = cy[c], qz = cz[c];
+            const int32_t *nr = nb + c * K;
+            float *v = vx + c * K * 3;
+            for (int64_t t = 0; t < K; ++t) {
+                const float *pj = xyz + (int64_t)nr[t] * 3;
+                v[t * 3] = pj[0] - qx; v[t * 3 + 1] = pj[1] - qy; v[t * 3 + 2] = pj[2] - qz;
+            }
+        }
+        const int64_t nv = S * K * 3;
+        for (int64_t i = 0; i < nv; i += 4096) {
+            const int64_t e = i + 4096 < nv ? i + 4096 : nv;
+            float acc = 0.0f;
+#pragma omp simd reduction(+:acc)
+            for (int64_t u = i; u < e; ++u) acc += vx[u];
+            s1 += acc;
+        }
+        const float mvf = (float)(s1 / (double)nv);
+        for (int64_t i = 0; i < nv; i += 4096) {
+            const int64_t e = i + 4096 < nv ? i + 4096 : nv;
+            float acc = 0.0f;
+#pragma omp simd reduction(+:acc)
+            for (int64_t u = i; u < e; ++u) { const float d = vx[u] - mvf; acc += d * d; }
+            s2 += acc;
+        }
+        const float rx = (float)(1.0 / (sqrt(s2 / (double)(nv - 1)) + 1e-5));
+#pragma omp simd
+        for (int64_t i = 0; i < nv; ++i) vx[i] *= rx;
+        TOC(3, 10);
+        TIC(7);
+        /* std of feature offsets: per-channel float partials over a centre's neighbours
+         * (4 rows a pass, no horizontal sum per row), reduced once per centre into
+         * double totals */
+        double f1 = 0.0, f2 = 0.0;
+        {
+            float *s1 = mx, *s2 = sm;
+            for (int64_t c = 0; c < S; ++c) {
+                const float *cf = feat + cidx[c] * Dp;
+                const int32_t *nr = nb + c * K;
+#if defined(__AVX512F__)
+                {
+                    float a1, a2;
+                    pgn_std_centre_avx512(feat, Dp, nr, K, cf, &a1, &a2);
+                    f1 += a1; f2 += a2;
+                    continue;
+                }
+#endif
+                for (int64_t d = 0; d < Dp; ++d) { s1[d] = 0.0f; s2[d] = 0.0f; }
+                int64_t t = 0;
+                for (; t + 4 <= K; t += 4) {
+                    const float *r0 = feat + (int64_t)nr[t] * Dp, *r1 = feat + (int64_t)nr[t + 1] * Dp;
+                    const float *r2 = feat + (int64_t)nr[t + 2] * Dp, *r3 = feat + (int64_t)nr[t + 3] * Dp;
+#pragma omp simd aligned(r0, r1, r2, r3, cf, s1, s2 : 64)
+                    for (int64_t d = 0; d < Dp; ++d) {
+                        const float e0 = r0[d] - cf[d], e1 = r1[d] - cf[d];
+                        const float e2 = r2[d] - cf[d], e3 = r3[d] - cf[d];
+                        s1[d] += (e0 + e1) + (e2 + e3);
+                        s2[d] += (e0 * e0 + e1 * e1) + (e2 * e2 + e3 * e3);
+                    }
+                }
+                for (; t < K; ++t) {
+                    const float *r0 = feat + (int64_t)nr[t] * Dp;
+#pragma omp simd aligned(r0, cf, s1, s2 : 64)
+                    for (int64_t d = 0; d < Dp; ++d) {
+                        const float e0 = r0[d] - cf[d];
+                        s1[d] += e0;
+                        s2[d] += e0 * e0;
+                    }
+                }
+                float a1 = 0.0f, a2 = 0.0f;
+#pragma omp simd reduction(+:a1, a2) aligned(s1, s2 : 64)
+                for (int64_t d = 0; d < Dp; ++d) { a1 += s1[d]; a2 += s2[d]; }
+                f1 += a1; f2 += a2;
+            }
+        }
+        const double nf = (double)(S * K * D);
+        double var = (f2 - f1 * f1 / nf) / (nf - 1.0);
+        if (var < 0.0) var = 0.0;
+        const float rf = (float)(1.0 / (sqrt(var) + 1e-5));
+        TOC(7, 7);
+        TIC(4);
+        /* per-channel centre and axis of the pe channels (padding lanes: ignored) */
+        for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
+        for (int64_t d = 0; d < D2; ++d) { cc[d] = cents[d % nc]; ax[d] = (int32_t)(d / nc); }
+        sep_t fxs, *fx = NULL;
+        /* blocks of 16 where the AVX-512 path runs and float range allows, else of 8 */
+        int B = 0;
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
+        if (pgn_sep_ok(nc, (double)q, 16)) B = 16;
+#endif
+        if (!B && pgn_sep_ok(nc, (double)q, 8)) B = 8;
+        if (B) {
+            /* grid from the exact linspace formula, in double, rounded once */
+            const double h = 2.0 / (double)(nc + 1), b0 = -1.0 + h, qd = (double)q;
+            fxs.n = nc;
+            fxs.B = B;
+            fxs.M = (nc + B - 1) / B;
+            fxs.q = q;
+            fxs.h2q = (float)(-2.0 * qd * h);
+            fxs.W = (float)(1.0 + sqrt(87.0 / fabs(qd)));
+            for (int64_t m = 0; m < fxs.M; ++m) {
+                const double bm = b0 + (double)B * (double)m * h;
+                sepb[m] = (float)bm;
+                for (int l = 0; l < B; ++l)
+                    sepT[m * B + l] = (float)exp(2.0 * qd * l * h * bm + qd * l * l * h * h);
+            }
+            fxs.b = sepb;
+            fxs.T = sepT;
+            fxs.A = sepA;
+            fxs.E = sepE;
+            fx = &fxs;
+        }
+        agg_job job;
+        memset(&job, 0, sizeof(job));
+        job.feat = feat; job.D = D; job.S = S; job.K = K; job.D2p = D2p; job.PS = PS;
+        job.cidx = cidx; job.nb = nb; job.vx = vx; job.cc = cc; job.ax = ax; job.r = rf;
+        job.q = q; job.out = nfeat;
+        /* 16 chunks on two threads: a claimed chunk is short, so the caller never waits
+         * long for a helper that was descheduled mid-chunk */
+        job.nchunks = par ? (S < 16 ? S : 16) : 1;
+        job.pe[0] = pe; job.mx[0] = mx; job.sm[0] = sm;
+        job.pe[1] = pe2; job.mx[1] = vec2; job.sm[1] = vec2 ? vec2 + VS : NULL;
+        if (fx) {
+            job.use_fx = 1;
+            job.fx[0] = *fx;
+            job.fx[1] = *fx;
+            job.fx[1].A = sepA2;
+            job.fx[1].E = sepE2;
+        }
+#if defined(__AVX512F__) && !defined(PGN_NO_D32)
+        const float sc = sqrtf(-q * 1.44269504088896341f);
+        float ccs[64];
+        __mmask16 m1[4] = {0}, m2[4] = {0};
+        if (!fx && D > 16 && D <= 32) {
+            /* register-resident path; pe lanes: channels [0, 32) and [D, D + 32) */
+            for (int i = 0; i < 64; ++i) {
+                const int64_t ch = i < 32 ? i : D + (i - 32);
+                const int axis = ch < D2 ? (int)(ch / nc) : 0;
+                ccs[i] = ch < D2 ? cents[ch % nc] * sc : 0.0f;
+                if (axis >= 1) m1[i / 16] |= (__mmask16)(1u << (i % 16));
+                if (axis >= 2) m2[i / 16] |= (__mmask16)(1u << (i % 16));
+            }
+            job.d32 = 1;
+            job.ccs = ccs; job.m1 = m1; job.m2 = m2; job.sc = sc;
+        }
+#endif
+        par_run(par, &job);
+        TOC(4, 3 + st);
+        TIC(9);
+        cents += nc;
+        /* global max and mean over centres */
+        for (int64_t d = 0; d < D2; ++d) { o[d] = -INFINITY; o[D2 + d] = 0.0f; }
+        for (int64_t c = 0; c < S; ++c) {
+            const float *rr = nfeat + c * D2p;
+            for (int64_t d = 0; d < D2; ++d) { o[d] = rr[d] > o[d] ? rr[d] : o[d]; o[D2 + d] += rr[d]; }
+        }
+        for (int64_t d = 0; d < D2; ++d) o[D2 + d] /= (float)S;
+        o += 2 * D2;
+        TOC(9, 9);
+        float *tmp = feat; feat = nfeat; nfeat = tmp;
+        memcpy(xyz, cxyz, sizeof(float) * (size_t)S * 3);
+        n = S;
+        D = D2;
+    }
+done:
+    free(featA); free(featB); free(xyz); free(cxyz); free(soa); free(scratch); free(vx);
+    free(vec); free(pe); free(ax); free(cidx); free(nb); free(keys);
+    free(sepb); free(sepT); free(sepA); free(sepE);
+    free(pe2); free(vec2); free(sepA2); free(sepE2);
+    return rc;
+}
+
+/* Encode clouds [0, count): xyz (count, num_points, 3) -> out (count, feature_dim). */
+int pgn_encode(const float *xyz, int64_t count, int64_t num_points, int64_t init_dim,
+               int64_t stages, int64_t k, float sigma, const float *cents, int64_t feature_dim,
+               float *out) {
+    pgn_cfg cfg = {num_points, init_dim, stages, k, sigma};
+    for (int64_t b = 0; b < count; ++b) {
+        int rc = encode_one(xyz + b * num_points * 3, &cfg, cents, out + b * feature_dim, NULL);
+        if (rc) return rc;
+    }
+    return 0;
+}
+
+/* One cloud on the calling thread plus a helper thread (started and joined here: ~50 us)
+ * that shares the aggregation; bit-identical to pgn_encode. Falls back to one thread
+ * when the helper cannot start. Returns 0, or -1 when out of memory. */
+int pgn_encode_lone(const float *xyz, int64_t num_points, int64_t init_dim, int64_t stages,
+                    int64_t k, float sigma, const float *cents, int64_t feature_dim, float *out) {
+    (void)feature_dim;
+    pgn_cfg cfg = {num_points, init_dim, stages, k, sigma};
+    par_t p;
+    memset(&p, 0, sizeof(p));
+    pthread_mutex_init(&p.mu, NULL);
+    pthread_cond_init(&p.cv, NULL);
+    atomic_init(&p.next, 0);
+    atomic_init(&p.done, 0);
+    pthread_t th;
+    const int started = pthread_create(&th, NULL, par_helper, &p) == 0;
+    const int rc = encode_one(xyz, &cfg, cents, out, started ? &p : NULL);
+    if (started) {
+        pthread_mutex_lock(&p.mu);
+        p.quit = 1;
+        pthread_cond_signal(&p.cv);
+        pthread_mutex_unlock(&p.mu);
+        pthread_join(th, NULL);
+    }
+    pthread_cond_destroy(&p.cv);
+    pthread_mutex_destroy(&p.mu);
+    return rc;
+}

@@ -1,0 +1,127 @@
+"""Roofline figures for the encoder's phases: peak rates of this core, work per phase.
+
+`measure_peaks()` times micro-benchmarks (pgn_peak.c) with the calling thread's CPU
+clock, so another process on the core does not lower the figure (it only takes wall
+time). `phase_work()` counts, for one cloud of a configuration, the minimal work of
+each phase: fp32 lane operations, exps and bytes read. floor = max(ops / peak_ops +
+exps / peak_exp, bytes / bandwidth); the phase's measured CPU time over its floor says
+how far the code is from this core's limit.
+
+The counts are of the computation, not of our implementation (e.g. a distance is 8
+operations, an aggregated element 5), with exps counted for separable Gaussians (one
+exp per 8 centres per axis and neighbour, plus one), the cheapest scheme in the code.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
+import math
+import time
+
+import numpy as np
+
+from point_gn_ros.core.config import EncoderConfig
+
+
+@dataclass(frozen=True)
+class Peaks:
+    """Per-core peaks: fp32 lane operations/s, exps/s, bytes/s from L2 and from memory."""
+
+    ops: float
+    exps: float
+    l2_bw: float
+    mem_bw: float
+
+
+@dataclass(frozen=True)
+class Work:
+    """Minimal work of a phase: fp32 lane operations, exps, bytes read and where from."""
+
+    ops: float = 0.0
+    exps: float = 0.0
+    bytes: float = 0.0
+    memory: bool = False  # bytes come from main memory (else from cache: L2)
+
+    def floor(self, peaks: Peaks) -> float:
+        """Seconds this work needs at best on one core."""
+        compute = self.ops / peaks.ops + self.exps / peaks.exps
+        return max(compute, self.bytes / (peaks.mem_bw if self.memory else peaks.l2_bw))
+
+
+def _best_rate(fn, min_seconds: float, tries: int) -> float:
+    """Best work / thread-CPU-second over tries; fn(scale) returns the work done."""
+    scale, best = 1, 0.0
+    while True:  # grow until one call takes min_seconds of CPU
+        t0 = time.thread_time()
+        work = fn(scale)
+        dt = time.thread_time() - t0
+        if dt >= min_seconds:
+            break
+        scale *= 2 if dt <= 0 else max(2, math.ceil(min_seconds / dt))
+    best = work / dt
+    for _ in range(tries - 1):
+        t0 = time.thread_time()
+        work = fn(scale)
+        best = max(best, work / max(time.thread_time() - t0, 1e-9))
+    return best
+
+
+def measure_peaks(lib: ctypes.CDLL, min_seconds: float = 0.05, tries: int = 5) -> Peaks:
+    """Micro-benchmark peaks of the current core (about 1 s of CPU in all)."""
+    def aligned(nbytes: int) -> np.ndarray:
+        raw = np.ones(nbytes // 4 + 16, np.float32)
+        off = (-raw.ctypes.data % 64) // 4
+        return raw[off:off + nbytes // 4]
+
+    l2 = aligned(256 << 10)    # inside L2 (1 MB on Zen 4) and beyond L1
+    mem = aligned(256 << 20)   # far beyond any cache
+    ops = _best_rate(lambda s: lib.pgn_peak_ops(100_000 * s), min_seconds, tries)
+    exps = _best_rate(lambda s: lib.pgn_peak_exp(100 * s), min_seconds, tries)
+    l2_bw = _best_rate(lambda s: lib.pgn_peak_read(l2.ctypes.data, l2.size, 50 * s),
+                       min_seconds, tries)
+    # memory bandwidth is shared by every core: other processes lower it (the least
+    # robust of these peaks on a busy machine)
+    mem_bw = _best_rate(lambda s: lib.pgn_peak_read(mem.ctypes.data, mem.size, s),
+                        min_seconds, tries)
+    return Peaks(ops=ops, exps=exps, l2_bw=l2_bw, mem_bw=mem_bw)
+
+
+def _stages(cfg: EncoderConfig):
+    """(n points, S centres, K neighbours, D input width, centres per pe axis) per stage."""
+    n, d = cfg.num_points, cfg.init_dim
+    for _ in range(cfg.stages):
+        s, k = n // 2, min(cfg.k, n)
+        yield n, s, k, d, 2 * d // 3
+        n, d = s, 2 * d
+
+
+def phase_work(cfg: EncoderConfig) -> dict[str, Work]:
+    """Minimal work per encoder phase for one cloud (keys: the profile's phase names)."""
+    fps = knn = std = pool = 0.0
+    std_bytes = 0.0
+    agg: dict[str, Work] = {}
+    for st, (n, s, k, d, nc) in enumerate(_stages(cfg), start=1):
+        # FPS and kNN: a distance (3 sub, 3 mul, 2 add) per (centre, point), plus the
+        # running min and arg-max (FPS) or one selection compare (kNN).
+        pool += s * 2 * d * 2.0  # max and sum over centres of the (S, 2D) output
+        fps += s * n * 10.0
+        knn += s * n * 9.0
+        # offset std: sub, add, fma per gathered element; reads the gathered rows
+        std += s * k * d * 3.0
+        std_bytes += s * k * d * 4.0
+        # aggregation per element of the (S, K, 2D) tensor: sub, fma, mul, max, add for the
+        # offset half (add, mul, max, add for the centre half) and one multiply of the
+        # separable Gaussian; exps: (ceil(nc / 8) + 1) per neighbour and axis
+        agg[f'aggregation stage {st}'] = Work(
+            ops=s * k * d * (6.0 + 5.0), exps=s * k * 3.0 * (math.ceil(nc / 8) + 1),
+            bytes=s * k * d * 4.0)
+    # initial embedding: one Gaussian (sub, mul, exp) per point and channel
+    init = Work(ops=cfg.num_points * cfg.init_dim * 2.0, exps=cfg.num_points * cfg.init_dim)
+    return {'initial embedding': init, 'FPS': Work(ops=fps), 'kNN': Work(ops=knn),
+            'feature std': Work(ops=std, bytes=std_bytes), **agg, 'pooling': Work(ops=pool)}
+
+
+def bank_scan_work(entries: int, dims: int, bytes_per_value: float) -> Work:
+    """A lone query against a bank: one multiply-add per stored value, the bank read once."""
+    return Work(ops=float(entries * dims), bytes=entries * dims * bytes_per_value, memory=True)
