@@ -26,6 +26,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument('--random-yaw', type=int, default=None, metavar='SEED',
                    help='rotate every object by a random angle about z (seeded): how the bank '
                         'copes with objects seen from any side')
+    e.add_argument('--single-view', action='store_true',
+                   help='classify one simulated single-view scan of every object instead '
+                        '(hidden points removed, noise, dropout, random yaw; core/views.py)')
+    e.add_argument('--seed', type=int, default=0,
+                   help='seed of the --single-view scans (default 0)')
     e.set_defaults(func=_eval)
 
     f = sub.add_parser('fewshot', help='N-way K-shot episodes (default: the paper settings)')
@@ -57,8 +62,13 @@ def _eval(args: argparse.Namespace) -> int:
         raise DatasetError(f"{ds.path}: class names differ from the bank's "
                            f'({len(ds.class_names)} vs {len(bank.class_names)} classes)')
     enc = make_encoder(bank.config, args.device)
-    if args.random_yaw is None:
-        feats = encode_dataset(ds, enc, args.batch_size, progress=not args.json,
+    source = ds
+    if args.single_view:
+        from point_gn_ros.datasets.views import ViewsDataset
+        # One scan per object, turned by a random yaw as well (seeded by --seed).
+        source = ViewsDataset(ds, 1, args.seed, include_full=False, random_yaw=True)
+    if args.random_yaw is None or args.single_view:
+        feats = encode_dataset(source, enc, args.batch_size, progress=not args.json,
                                cache_dir=Path(args.cache) if args.cache else None)
     else:
         from point_gn_ros.recognizer import encode_clouds
@@ -71,14 +81,17 @@ def _eval(args: argparse.Namespace) -> int:
     res = clf.classify(torch.as_tensor(feats), top_k=1)
     report = accuracy_report(ds.labels, res.labels, bank.class_names)
     report.update(bank=str(bank.path), dataset=str(ds.path), split=ds.split,
-                  gamma=clf.gamma, random_yaw_seed=args.random_yaw)
+                  gamma=clf.gamma, random_yaw_seed=args.random_yaw,
+                  single_view_seed=args.seed if args.single_view else None)
     if args.confusion:
         plot_confusion(report['confusion'], bank.class_names, args.confusion,
                        f'{Path(ds.path).name} [{ds.split}]: {100 * report["accuracy"]:.2f} %')
     if args.json:
         print(json.dumps({k: v for k, v in report.items() if k != 'confusion'}, indent=2))
     else:
-        print(format_report(report, f'{Path(ds.path).name} [{ds.split}] vs {bank.path.name}'))
+        what = f' single-view scans (seed {args.seed})' if args.single_view else ''
+        print(format_report(report, f'{Path(ds.path).name} [{ds.split}]{what} vs '
+                                    f'{bank.path.name}'))
     return 0
 
 
