@@ -25,8 +25,9 @@ class ViewsDataset(Dataset):
     Item i is deterministic in (seed, groups[i], view_index[i]) and the view configuration.
     """
 
-    def __init__(self, base: Dataset, views: int, seed: int = 0, cfg: ViewConfig = DEFAULT_VIEW_CONFIG,
-                 include_full: bool = True, random_yaw: bool = False,
+    def __init__(self, base: Dataset, views: int, seed: int = 0,
+                 cfg: ViewConfig = DEFAULT_VIEW_CONFIG, include_full: bool = True,
+                 random_yaw: bool = False,
                  memoize: bool = False, sources: np.ndarray | None = None) -> None:
         if views < 0 or (views == 0 and not include_full):
             raise ValueError(f'views must be >= 1 (or >= 0 with include_full), got {views}')
