@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from point_gn_ros.core.sampling import rotate_z
-from point_gn_ros.core.views import DEFAULT_VIEW_CONFIG, SIMULATOR_VERSION, ViewConfig,
-                                     simulate_views
+from point_gn_ros.core.views import (DEFAULT_VIEW_CONFIG, SIMULATOR_VERSION, ViewConfig,
+                                     simulate_views)
 from point_gn_ros.datasets.base import Dataset
 
 
