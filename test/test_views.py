@@ -153,3 +153,18 @@ def test_views_dataset_groups_and_folds_keep_objects_together() -> None:
     for g in range(30):
         assert len(set(fold_of[ds.groups == g])) == 1
     assert sorted(np.concatenate(folds).tolist()) == list(range(len(ds)))
+
+
+def test_bag_realism_single_view_faces_the_sensor() -> None:
+    from point_gn_ros.bag.realism import Placement, Realism
+
+    xyz = cube(3000)
+    out = Realism(sensor_frame=True, single_view=True).apply(xyz, np.random.default_rng(4))
+    assert 32 <= len(out) < 0.5 * len(xyz)
+    # The scan is the side facing the sensor at the origin: every point is nearer the sensor
+    # than the object's centre (the placement's offset: drawn first from the same seed).
+    centre = Placement.draw(xyz, np.random.default_rng(4)).offset
+    assert (np.linalg.norm(out, axis=1) < np.linalg.norm(centre)).mean() > 0.95
+    same = Realism(sensor_frame=True, single_view=True).apply(xyz, np.random.default_rng(4))
+    np.testing.assert_array_equal(out, same)
+    assert Realism(single_view=True).active
