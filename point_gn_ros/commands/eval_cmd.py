@@ -52,6 +52,7 @@ def _eval(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.builder import encode_dataset
     from point_gn_ros.bank.classifier import Classifier
     from point_gn_ros.commands.common import open_dataset_from_args
+    from point_gn_ros.datasets.views import ViewsDataset
     from point_gn_ros.errors import DatasetError
     from point_gn_ros.evaluation.metrics import accuracy_report, format_report, plot_confusion
     from point_gn_ros.recognizer import make_encoder
@@ -64,19 +65,13 @@ def _eval(args: argparse.Namespace) -> int:
     enc = make_encoder(bank.config, args.device)
     source = ds
     if args.single_view:
-        from point_gn_ros.datasets.views import ViewsDataset
         # One scan per object, turned by a random yaw as well (seeded by --seed).
         source = ViewsDataset(ds, 1, args.seed, include_full=False, random_yaw=True)
-    if args.random_yaw is None or args.single_view:
-        feats = encode_dataset(source, enc, args.batch_size, progress=not args.json,
-                               cache_dir=Path(args.cache) if args.cache else None)
-    else:
-        from point_gn_ros.recognizer import encode_clouds
-        from point_gn_ros.core.sampling import rotate_z
-        angles = np.random.default_rng(args.random_yaw).uniform(0, 2 * np.pi, len(ds))
-        feats = encode_clouds((rotate_z(ds[i][0], angles[i]) for i in range(len(ds))), enc,
-                              batch_size=args.batch_size, total=len(ds),
-                              progress=None if args.json else 'encoding (random yaw)')
+    elif args.random_yaw is not None:
+        # The complete objects, each turned by a seeded random yaw (cached like the rest).
+        source = ViewsDataset(ds, 0, args.random_yaw, include_full=True, random_yaw=True)
+    feats = encode_dataset(source, enc, args.batch_size, progress=not args.json,
+                           cache_dir=Path(args.cache) if args.cache else None)
     clf = Classifier(bank, args.device, args.unknown_threshold, gamma=args.gamma)
     res = clf.classify(torch.as_tensor(feats), top_k=1)
     report = accuracy_report(ds.labels, res.labels, bank.class_names)
