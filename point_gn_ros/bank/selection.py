@@ -8,6 +8,8 @@ per fold.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 import itertools
 
@@ -22,6 +24,8 @@ DEFAULT_GAMMAS = tuple(5.0 * 2.0 ** k for k in range(11))          # 5 .. 5120
 DEFAULT_ALPHAS = (0.05, 0.1, 0.2, 0.4)                # whitening of the vote (a matmul each)
 DEFAULT_LDA_ALPHAS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4)  # LDA covariance (nearly free in CV)
 DEFAULT_WEIGHTS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
+# Below this many entries CV runs single-threaded (_threads_for).
+_SMALL_BANK = 2000
 # Gamma of the plain vote when the bank is too small to cross-validate anything.
 FALLBACK_GAMMA = 100.0
 
@@ -149,20 +153,28 @@ def _fold_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
         if not alphas and not lda_alphas:
             continue
         fit = CovarianceFit.fit(z_tr, lab[train], num_classes)
-        p_tr, p_val = z_tr.double() @ fit.evecs, z_val.double() @ fit.evecs
-        pm = fit.means @ fit.evecs
+        c_tr, c_val = fit.coords(z_tr), fit.coords(z_val)     # once per fold
         for a in lda_alphas:
-            inv = 1.0 / fit.shrunk(a)
-            logits = (p_val * inv) @ pm.T - 0.5 * (pm * pm * inv).sum(1) + fit.log_prior
+            logits = fit.lda_logits(c_val, a)
             out.lda[a][torch.from_numpy(val)] = torch.log_softmax(logits, dim=1).float()
         for a in alphas:
-            inv = 1.0 / fit.shrunk(a)
             if a in spaces:
-                root = inv.sqrt()
-                u_tr = torch.nn.functional.normalize((p_tr * root).float(), dim=1)
-                u_val = torch.nn.functional.normalize((p_val * root).float(), dim=1)
+                u_tr = torch.nn.functional.normalize(fit.whitened(c_tr, a), dim=1)
+                u_val = torch.nn.functional.normalize(fit.whitened(c_val, a), dim=1)
                 vote(a, u_val @ u_tr.T, val, train)
     return out
+
+
+@contextmanager
+def _threads_for(n: int) -> Iterator[None]:
+    """One torch thread for small banks: thousands of tiny ops lose to thread hand-offs."""
+    before = torch.get_num_threads()
+    if n < _SMALL_BANK:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
@@ -186,6 +198,16 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
     `folds` objects in some class the folds shrink to that count; with one, no CV is
     possible and the plain vote with FALLBACK_GAMMA is returned (`fallback` says why).
     """
+    with _threads_for(len(labels)):
+        return _select(feats, labels, num_classes, gammas, standardize_options, dims_options,
+                       folds, seed, groups, alphas, weights, whiten_options, lda_alphas)
+
+
+def _select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
+            gammas: tuple[float, ...], standardize_options: tuple[Standardize, ...],
+            dims_options: tuple[int | None, ...], folds: int, seed: int,
+            groups: np.ndarray | None, alphas: tuple[float, ...], weights: tuple[float, ...],
+            whiten_options: tuple[bool, ...], lda_alphas: tuple[float, ...]) -> Selection:
     labels = np.asarray(labels, dtype=np.int64)
     lab = torch.from_numpy(labels)
     m = _min_class_groups(labels, groups)
