@@ -29,6 +29,7 @@ import torch
 _MAX_BLOCK = 1 << 24
 # exp() of a kernel logit this far below the best entry underflows float32: floor there.
 _TINY = float(torch.finfo(torch.float32).tiny)
+_ABSENT_LOG_PRIOR = -1e4
 
 
 @dataclass
@@ -151,14 +152,12 @@ class CovarianceFit:
 
     @classmethod
     def fit(cls, z: torch.Tensor, labels: torch.Tensor, num_classes: int) -> 'CovarianceFit':
-        """z: (N, d) float32; labels: (N,) int64 (every class present at least once)."""
+        """z: (N, d) float32; labels: (N,) int64 (classes without entries: prior ~0)."""
         z64 = z.double()
         counts = torch.bincount(labels, minlength=num_classes).double()
-        if (counts == 0).any():
-            raise ValueError('every class needs at least one bank entry')
         means = torch.zeros(num_classes, z.shape[1], dtype=torch.float64)
         means.index_add_(0, labels, z64)
-        means /= counts[:, None]
+        means /= counts.clamp_min(1)[:, None]
         centred = z64 - means[labels]
         dof = max(1, len(labels) - num_classes)      # pooled, unbiased
         if len(labels) < z.shape[1]:                 # low rank: SVD of the N rows
@@ -169,7 +168,9 @@ class CovarianceFit:
             evals, evecs = torch.linalg.eigh(centred.T @ centred / dof)
             evals = evals.clamp_min(0.0)
         tau = float(evals.sum() / z.shape[1])
-        return cls(means, evals, evecs, (counts / counts.sum()).log(), tau)
+        # A class without entries gets a finite, overwhelming penalty instead of log(0).
+        log_prior = (counts / counts.sum()).log().clamp_min(_ABSENT_LOG_PRIOR)
+        return cls(means, evals, evecs, log_prior, tau)
 
     @property
     def full_rank(self) -> bool:

@@ -108,11 +108,14 @@ class Selection:
 
 
 def _min_class_groups(labels: np.ndarray, groups: np.ndarray | None) -> int:
-    """Fewest independent objects (groups, else entries) of any class."""
+    """Fewest independent objects (groups, else entries) of any class present."""
+    if len(labels) == 0:
+        return 0
     if groups is None:
-        return int(np.bincount(labels).min()) if len(labels) else 0
-    pairs = np.unique(np.stack([labels, np.asarray(groups)]), axis=1)
-    return int(np.bincount(pairs[0]).min())
+        counts = np.bincount(labels)
+    else:
+        counts = np.bincount(np.unique(np.stack([labels, np.asarray(groups)]), axis=1)[0])
+    return int(counts[counts > 0].min())        # classes with no entries at all: ignored
 
 
 @dataclass
