@@ -2,7 +2,8 @@
 
 What a bigger (sensor-realistic) bank costs the node per object, without the node: the
 classifier's time per query at batch 1 (a lone query reads the whole bank) and at batch 16
-(the node's micro-batches), median over repeats, random unit features as queries.
+(the node's micro-batches), median CPU time over repeats with one torch thread (so a loaded
+machine's waiting is not counted), random features as queries.
 
     python scripts/bank_query_time.py point_gn_ros/data/modelnet40_default.npz other.npz
 """
@@ -21,12 +22,13 @@ from point_gn_ros.bank.store import FeatureBank
 
 
 def _median_ms(fn, repeats: int) -> float:
+    """Median CPU time of fn (process time: on a loaded machine, waiting is not counted)."""
     fn()                                    # warm-up
     times = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         fn()
-        times.append(time.perf_counter() - t0)
+        times.append(time.process_time() - t0)
     return 1e3 * float(np.median(times))
 
 
@@ -36,8 +38,9 @@ def main() -> None:
     p.add_argument('banks', nargs='+')
     p.add_argument('--repeats', type=int, default=30)
     args = p.parse_args()
+    torch.set_num_threads(1)
     print('| bank | entries x dims | file MB | load s | features in memory MB | '
-          'lone query ms | per query at batch 16 ms |\n|---|---|---:|---:|---:|---:|---:|')
+          'lone query CPU ms | per query at batch 16 CPU ms |\n|---|---|---:|---:|---:|---:|---:|')
     for path in args.banks:
         t0 = time.perf_counter()
         bank = FeatureBank.load(path)
