@@ -147,8 +147,10 @@ def visible_indices(xyz: np.ndarray, camera: np.ndarray, target: np.ndarray,
     ix = np.floor(dot(right) / safe * near / width).astype(np.int64)[front]
     iy = np.floor(dot(up) / safe * near / width).astype(np.int64)[front]
     dep = depth[front]
-    ox, oy = ix.min() - 1 if len(ix) else 0, iy.min() - 1 if len(iy) else 0
-    span = (iy.max() - oy + 2) if len(iy) else 1
+    if not len(dep):
+        return np.zeros(0, dtype=np.int64)
+    ox, oy = ix.min() - 1, iy.min() - 1
+    span = iy.max() - oy + 2
     keys = (ix - ox) * span + (iy - oy)
     cells, inverse = np.unique(keys, return_inverse=True)
     zbuf = np.full(len(cells), np.inf)
@@ -206,7 +208,7 @@ def simulate_views(xyz: np.ndarray, k: int, seed: int = 0,
     """K seeded views of one cloud at evenly spread azimuths (random offset): list of View.
 
     Spreading the azimuths (one per 360/k degree sector) covers every side of the object with
-    few views; view j depends only on (seed, j), so adding views never changes earlier ones.
+    few views; view j depends only on (seed, j, k) and the configuration.
     """
     offset = np.random.default_rng([seed, 0x5EED]).uniform(0.0, 2 * np.pi)
     sp = point_spacing(xyz)
