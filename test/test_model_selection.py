@@ -54,3 +54,30 @@ def test_fewshot_episodes_are_disjoint_and_seeded() -> None:
     r1 = run_fewshot(labels, lambda idx: table[torch.from_numpy(idx)], 5, 10, episodes=3)
     r2 = run_fewshot(labels, lambda idx: table[torch.from_numpy(idx)], 5, 10, episodes=3)
     assert r1 == r2 and r1['mean'] > 0.9
+
+
+def test_group_folds_never_split_a_group_and_stay_stratified() -> None:
+    rng = np.random.default_rng(1)
+    objects = np.repeat(np.arange(4), [10, 20, 5, 7])      # labels of 42 source objects
+    views = rng.integers(1, 6, len(objects))               # 1-5 simulated views each
+    labels = np.repeat(objects, views)
+    groups = np.repeat(rng.permutation(1000)[:len(objects)], views)
+    folds = stratified_folds(labels, 5, seed=3, groups=groups)
+    allidx = np.concatenate(folds)
+    assert sorted(allidx.tolist()) == list(range(len(labels)))
+    fold_of = np.empty(len(labels), dtype=int)
+    for f, idx in enumerate(folds):
+        fold_of[idx] = f
+    for g in np.unique(groups):
+        assert len(set(fold_of[groups == g])) == 1
+    for c in range(4):      # each class spread over the folds, within one group's size
+        per_fold = [int((labels[f] == c).sum()) for f in folds]
+        assert max(per_fold) - min(per_fold) <= views.max(), per_fold
+        assert min(per_fold) > 0
+
+
+def test_select_accepts_groups() -> None:
+    feats, labels = _data()
+    groups = np.arange(len(labels)) // 3
+    sel = select(feats, labels, 4, gammas=(5.0, 50.0), groups=groups)
+    assert sel.heldout_scores.shape == (120,)

@@ -46,14 +46,19 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                dims_options: tuple[int | None, ...] = (None,), folds: int = 5,
                false_reject_rate: float = 0.05, progress: bool = True,
                cache_dir: Path | None = None, encoder: Encoder | None = None,
-               feats: torch.Tensor | None = None) -> FeatureBank:
-    """Encode `dataset`, choose gamma/transform by k-fold CV on it, return the bank."""
+               feats: torch.Tensor | None = None,
+               groups: np.ndarray | None = None) -> FeatureBank:
+    """Encode `dataset`, choose gamma/transform by k-fold CV on it, return the bank.
+
+    groups: (N,) int or None; entries sharing a group (an object and its simulated views)
+    stay in one CV fold.
+    """
     encoder = encoder or make_encoder(cfg, device)
     if feats is None:
         feats = encode_dataset(dataset, encoder, progress=progress, cache_dir=cache_dir)
     labels = np.asarray(dataset.labels, dtype=np.int64)
     sel = select(feats, labels, len(dataset.class_names), gammas, standardize_options,
-                 dims_options, folds)
+                 dims_options, folds, groups=groups)
     tf = FeatureTransform.fit(feats, sel.standardize, sel.dims)
     counts = Counter(labels.tolist())
     meta = {
@@ -65,6 +70,7 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
         },
         'selection': {'standardize': sel.standardize, 'dims': sel.dims, 'gamma': sel.gamma,
                       'cv_folds': folds, 'cv_accuracy': sel.cv_accuracy,
+                      'cv_grouped': groups is not None,
                       'grid': {'gammas': list(gammas),
                                'standardize': list(standardize_options),
                                'dims': list(dims_options)}},

@@ -17,17 +17,47 @@ from point_gn_ros.bank.transform import FeatureTransform, Standardize
 DEFAULT_GAMMAS = tuple(float(g) for g in np.geomspace(5, 5000, 19).round(1))
 
 
-def stratified_folds(labels: np.ndarray, k: int = 5, seed: int = 0) -> list[np.ndarray]:
-    """Split indices into k folds with every class spread evenly: list of (n_i,) int64."""
+def stratified_folds(labels: np.ndarray, k: int = 5, seed: int = 0,
+                     groups: np.ndarray | None = None) -> list[np.ndarray]:
+    """Split indices into k folds with every class spread evenly: list of (n_i,) int64.
+
+    groups: (N,) int or None. Entries sharing a group id (a source object and its
+    simulated views) always land in the same fold, so no fold is scored against a
+    near-copy of itself; a group takes the label of its first entry for stratification.
+    """
+    labels = np.asarray(labels)
+    if groups is None:
+        rng = np.random.default_rng(seed)
+        folds: list[list[int]] = [[] for _ in range(k)]
+        offset = 0
+        for c in np.unique(labels):
+            idx = rng.permutation(np.flatnonzero(labels == c))
+            for j, i in enumerate(idx):
+                folds[(j + offset) % k].append(int(i))
+            offset += len(idx)
+        return [np.sort(np.asarray(f, dtype=np.int64)) for f in folds]
+    groups = np.asarray(groups)
+    if groups.shape != labels.shape:
+        raise ValueError(f'groups {groups.shape} must match labels {labels.shape}')
+    uniq, first, inverse = np.unique(groups, return_index=True, return_inverse=True)
+    members = [np.flatnonzero(inverse == g) for g in range(len(uniq))]
+    group_label = labels[first]
     rng = np.random.default_rng(seed)
-    folds: list[list[int]] = [[] for _ in range(k)]
-    offset = 0
-    for c in np.unique(labels):
-        idx = rng.permutation(np.flatnonzero(labels == c))
-        for j, i in enumerate(idx):
-            folds[(j + offset) % k].append(int(i))
-        offset += len(idx)
-    return [np.sort(np.asarray(f, dtype=np.int64)) for f in folds]
+    fold_of_group = np.empty(len(uniq), dtype=np.int64)
+    total = np.zeros(k, dtype=np.int64)
+    for c in np.unique(group_label):
+        gs = rng.permutation(np.flatnonzero(group_label == c))
+        per_class = np.zeros(k, dtype=np.int64)
+        # Largest groups first, each to the fold holding fewest of this class (then fewest
+        # overall): near-even class counts per fold even with uneven group sizes.
+        for g in sorted(gs, key=lambda g: -len(members[g])):
+            f = int(np.lexsort((total, per_class))[0])
+            fold_of_group[g] = f
+            per_class[f] += len(members[g])
+            total[f] += len(members[g])
+    return [np.sort(np.concatenate([members[g] for g in np.flatnonzero(fold_of_group == f)]
+                                   + [np.zeros(0, dtype=np.int64)])).astype(np.int64)
+            for f in range(k)]
 
 
 @dataclass
@@ -55,14 +85,15 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
            gammas: tuple[float, ...] = DEFAULT_GAMMAS,
            standardize_options: tuple[Standardize, ...] = ('none', 'standardize'),
            dims_options: tuple[int | None, ...] = (None,), folds: int = 5,
-           seed: int = 0) -> Selection:
+           seed: int = 0, groups: np.ndarray | None = None) -> Selection:
     """Grid search by stratified k-fold CV on the bank.
 
-    feats: (N, D) float32 raw encoder features; labels: (N,) int. Returns the
+    feats: (N, D) float32 raw encoder features; labels: (N,) int; groups: (N,) int or
+    None (entries of one group never split across folds). Returns the
     combination with the best mean held-out accuracy (ties: the earlier, simpler one).
     """
     lab = torch.from_numpy(np.asarray(labels, dtype=np.int64))
-    parts = stratified_folds(np.asarray(labels), folds, seed)
+    parts = stratified_folds(np.asarray(labels), folds, seed, groups)
     everything = np.arange(len(labels))
     table = []
     best = None
