@@ -116,7 +116,7 @@ def test_box_geometry_and_colours() -> None:
 
 
 def test_reason_keys_are_short_and_bounded() -> None:
-    from point_gn_ros.node.classifier_node import _reason_key
+    from point_gn_ros.node.pipeline import reason_key as _reason_key
     assert _reason_key("missing field 'z' (fields: x, y)") == 'missing field'
     assert _reason_key('data has 100 bytes, expected row_step*height = 120') == 'data has bytes'
     assert (_reason_key("field 'x' (offset 8, 4 bytes) does not fit in point_step 8")

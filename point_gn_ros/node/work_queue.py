@@ -68,6 +68,17 @@ class WorkQueue(Generic[T]):
             self._cond.notify()
         return dropped
 
+    def resize(self, maxlen: int) -> None:
+        """New per-topic bound; queues above it drop their oldest messages (counted)."""
+        if maxlen < 1:
+            raise ValueError(f'maxlen must be >= 1, got {maxlen}')
+        with self._cond:
+            self._maxlen = maxlen
+            for i, q in enumerate(self._queues):
+                while len(q) > maxlen:
+                    q.popleft()
+                    self._dropped[i] += 1
+
     def take(self, max_items: int, timeout: float | None = None) -> list[QueueItem[T]]:
         """Up to max_items messages, taken round-robin across topics, oldest first per topic.
 

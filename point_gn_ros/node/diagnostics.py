@@ -1,0 +1,99 @@
+"""The node's /diagnostics content: one DiagnosticArray from a stats snapshot (no rclpy).
+
+Statuses: `<node>: pipeline` (counters, rates, latencies), `<node>: input <topic>` per input
+topic, `<node>: bank`. Levels compare with the previous report: WARN when messages were
+dropped or rejected since then, ERROR on classification errors or a dead worker.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+import math
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+from point_gn_ros.node.params import Settings
+from point_gn_ros.node.stats import StatsSnapshot
+
+
+class DiagnosticsBuilder:
+    """Builds each report; remembers the previous one's totals to detect new problems."""
+
+    def __init__(self) -> None:
+        self._last: tuple[int, int, int] = (0, 0, 0)   # drops, rejects, errors
+
+    def build(self, name: str, snap: StatsSnapshot, settings: Settings,
+              topic_names: Sequence[str], worker_alive: bool, bank: Any,
+              unknown_threshold: float | None) -> DiagnosticArray:
+        """DiagnosticArray (header unset) for node `name` (fully qualified)."""
+        s = settings
+        drops, rejects = sum(snap.dropped), sum(snap.rejected.values())
+        new_drops = drops - self._last[0]
+        new_rejects = rejects - self._last[1]
+        new_errors = snap.errors - self._last[2]
+        self._last = (drops, rejects, snap.errors)
+
+        level, message = DiagnosticStatus.OK, 'ok'
+        problems = []
+        if new_drops:
+            problems.append(f'{new_drops} message(s) dropped (queue full)')
+        if new_rejects:
+            problems.append(f'{new_rejects} message(s) rejected')
+        if problems:
+            level, message = DiagnosticStatus.WARN, '; '.join(problems)
+        if not worker_alive:
+            level, message = DiagnosticStatus.ERROR, 'worker thread stopped'
+        elif new_errors:
+            level, message = DiagnosticStatus.ERROR, f'classification failed: {snap.last_error}'
+
+        pipeline = DiagnosticStatus(level=level, name=f'{name}: pipeline', message=message,
+                                    hardware_id=s.device)
+        pipeline.values = key_values({
+            'input_rate_hz': f'{snap.input_rate_hz:.2f}',
+            'processed_rate_hz': f'{snap.processed_rate_hz:.2f}',
+            'objects_rate_hz': f'{snap.objects_rate_hz:.2f}',
+            'received': sum(snap.received),
+            'processed': sum(snap.processed),
+            'objects': snap.objects,
+            'latency_receipt_p50_ms': fmt_ms(snap.latency_receipt_ms[0]),
+            'latency_receipt_p99_ms': fmt_ms(snap.latency_receipt_ms[1]),
+            'latency_stamp_p50_ms': fmt_ms(snap.latency_stamp_ms[0]),
+            'latency_stamp_p99_ms': fmt_ms(snap.latency_stamp_ms[1]),
+            'latency_samples': snap.latency_samples,
+            'mean_batch_objects': f'{snap.batch_size_mean:.1f}',
+            'queue_depth': sum(snap.queue_depths),
+            'queue_capacity': s.queue_size * len(s.input_topics),
+            'dropped': drops,
+            'rejected': rejects,
+            **{f'rejected.{reason}': n for reason, n in sorted(snap.rejected.items())},
+            'skipped_segments': snap.skipped_segments,
+            'errors': snap.errors,
+        })
+        statuses = [pipeline]
+        for i, topic in enumerate(topic_names):
+            full = snap.queue_depths[i] >= s.queue_size
+            st = DiagnosticStatus(level=DiagnosticStatus.WARN if full else DiagnosticStatus.OK,
+                                  name=f'{name}: input {topic}', hardware_id=s.device,
+                                  message='queue full' if full else 'ok')
+            st.values = key_values({
+                'topic_index': i, 'input_rate_hz': f'{snap.per_topic_input_hz[i]:.2f}',
+                'received': snap.received[i], 'processed': snap.processed[i],
+                'dropped': snap.dropped[i], 'queue_depth': snap.queue_depths[i]})
+            statuses.append(st)
+        bank_status = DiagnosticStatus(level=DiagnosticStatus.OK, name=f'{name}: bank',
+                                       message=bank.summary(), hardware_id=s.device)
+        bank_status.values = key_values({
+            'path': str(bank.path), 'entries': len(bank), 'classes': bank.num_classes,
+            'num_points': bank.config.num_points, 'resample': s.resample, 'top_k': s.top_k,
+            'unknown_threshold': unknown_threshold or 0.0})
+        statuses.append(bank_status)
+        return DiagnosticArray(status=statuses)
+
+
+def fmt_ms(v: float) -> str:
+    return 'nan' if math.isnan(v) else f'{v:.1f}'
+
+
+def key_values(d: dict[str, Any]) -> list[KeyValue]:
+    return [KeyValue(key=k, value=str(v)) for k, v in d.items()]

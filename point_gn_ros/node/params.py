@@ -1,0 +1,122 @@
+"""The classifier node's parameters: names, defaults, descriptions, ranges and validation.
+
+No rclpy here: the node declares these, tests and tools read them. `settings_from_values`
+turns the declared values into a validated, immutable `Settings`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange
+
+from point_gn_ros.errors import PointGNError
+
+
+class NodeConfigError(PointGNError):
+    """A parameter value the node cannot run with."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Validated parameter values (all fixed at start)."""
+
+    bank_path: str
+    input_topics: tuple[str, ...]
+    segment_field: str
+    min_points: int
+    num_points: int
+    resample: str
+    device: str
+    top_k: int
+    unknown_threshold: float
+    max_batch: int
+    queue_size: int
+    qos_reliability: str
+    qos_depth: int
+    torch_threads: int
+
+
+def _int_range(lo: int, hi: int) -> list[IntegerRange]:
+    return [IntegerRange(from_value=lo, to_value=hi, step=1)]
+
+
+# name -> (default, description, extra ParameterDescriptor kwargs). Every one is read-only:
+# the pipeline (bank, encoder, queues, subscriptions) is built once at start.
+PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
+    'bank_path': ('', "Feature bank (.npz); '' = the ModelNet40 bank shipped with the package.",
+                  {}),
+    'input_topics': (['segmented_objects'],
+                     'sensor_msgs/PointCloud2 topics to classify (all share one worker).', {}),
+    'segment_field': ('', "'' = each message is one object; else the integer point field that "
+                          'splits a message into objects (negative ids are ignored).', {}),
+    'min_points': (16, 'Objects (or segments) with fewer finite points are rejected.',
+                   {'integer_range': _int_range(1, 1_000_000)}),
+    'num_points': (1024, "Points per object after resampling; must equal the bank's encoder "
+                         'configuration.', {'integer_range': _int_range(16, 65536)}),
+    'resample': ('fps', "Resampling to num_points: 'fps' (farthest point) or 'random'.",
+                 {'additional_constraints': "one of 'fps', 'random'"}),
+    'device': ('cpu', "Torch device: 'cpu' or 'cuda'.",
+               {'additional_constraints': "one of 'cpu', 'cuda'"}),
+    'top_k': (5, 'How many best classes (ids and scores) each object carries.',
+              {'integer_range': _int_range(1, 100)}),
+    'unknown_threshold': (0.0, 'Top-1 scores below it are labelled unknown (class_id -1); '
+                               "0 = off, < 0 = the bank's calibrated threshold.",
+                          {'floating_point_range': [FloatingPointRange(
+                              from_value=-1.0, to_value=1.0, step=0.0)]}),
+    'max_batch': (32, 'Most objects encoded in one micro-batch (across topics).',
+                  {'integer_range': _int_range(1, 1024)}),
+    'queue_size': (8, 'Messages waiting per input topic; when full the oldest is dropped.',
+                   {'integer_range': _int_range(1, 10_000)}),
+    'qos_reliability': ('best_effort', "Input QoS: 'best_effort' (sensor data profile) or "
+                                       "'reliable'.",
+                        {'additional_constraints': "one of 'best_effort', 'reliable'"}),
+    'qos_depth': (5, 'Input (and output) QoS history depth.',
+                  {'integer_range': _int_range(1, 1000)}),
+    'torch_threads': (2, 'Torch intra-op threads and fast-encoder worker threads; bounded on '
+                         'purpose so that they do not starve the executor and DDS threads.',
+                      {'integer_range': _int_range(1, 256)}),
+}
+
+CHOICES = {'resample': ('fps', 'random'), 'device': ('cpu', 'cuda'),
+           'qos_reliability': ('best_effort', 'reliable')}
+
+
+def settings_from_values(values: dict[str, Any]) -> Settings:
+    """Validate declared parameter values (name -> value) into Settings.
+
+    Ranges are enforced by the descriptors when declared; this checks what they cannot
+    express (choices, topic lists, CUDA availability). Raises NodeConfigError.
+    """
+    values = dict(values)
+    for name, choices in CHOICES.items():
+        if values[name] not in choices:
+            raise NodeConfigError(f'parameter {name}={values[name]!r} must be one of '
+                                  f'{", ".join(choices)}')
+    topics = tuple(str(t) for t in values['input_topics'] or ())
+    if not topics or any(not t for t in topics):
+        raise NodeConfigError(f'parameter input_topics={list(topics)} must name at least '
+                              'one topic, none empty')
+    if len(set(topics)) != len(topics):
+        raise NodeConfigError(f'parameter input_topics={list(topics)} repeats a topic')
+    values['input_topics'] = topics
+    if values['device'] == 'cuda':
+        import torch
+        if not torch.cuda.is_available():
+            raise NodeConfigError("parameter device='cuda' but CUDA is not available")
+    return Settings(**values)
+
+
+def resolve_unknown_threshold(bank: Any, value: float) -> float | None:
+    """The effective open-set threshold: None when 0 (off); the bank's calibrated one if < 0.
+
+    Raises NodeConfigError when value < 0 and the bank holds no calibration.
+    """
+    if value >= 0:
+        return value or None
+    calib = bank.meta.get('unknown_calibration')
+    if not calib:
+        raise NodeConfigError(f'unknown_threshold={value:g} asks for the calibrated threshold, '
+                              f'but {bank.path} holds no calibration')
+    return float(calib['threshold'])

@@ -1,0 +1,252 @@
+"""The classifier node's work, without ROS: decode, split, classify, answer.
+
+One worker thread takes micro-batches of queued messages, decodes and splits each into
+object clouds (`prepare`), classifies all objects of the batch together in chunks of
+`max_batch` (`classify`) and hands each message's slice of the results to a `publish`
+callback (`Answer`). A batch that fails is retried message by message so that one bad
+message costs only itself. The node (classifier_node.py) owns the ROS side: subscriptions
+enqueue, `publish` turns an Answer into messages.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Hashable, Sequence
+from dataclasses import dataclass
+import re
+import threading
+from typing import Any
+
+import numpy as np
+
+from point_gn_ros.errors import DecodeError
+from point_gn_ros.node.frames import to_z_up
+from point_gn_ros.node.params import Settings, resolve_unknown_threshold
+from point_gn_ros.node.stats import NodeStats
+from point_gn_ros.node.work_queue import QueueItem, WorkQueue
+
+REJECT_TOO_FEW = 'too few points'
+
+
+@dataclass
+class Job:
+    """One dequeued message on its way through the pipeline.
+
+    clouds: list of (N_i, 3) float32 finite object clouds; segment_ids: one per cloud
+    (-1 = the whole message is one object).
+    """
+
+    item: QueueItem[Any]
+    segment_ids: list[int]
+    clouds: list[np.ndarray]
+    # (3, 3) rotation of the input frame into z-up (node/frames.py); None = already z-up.
+    rotation: np.ndarray | None = None
+
+    def model_clouds(self) -> list[np.ndarray]:
+        """The clouds as the classifier sees them: turned z-up (outputs keep the input frame)."""
+        return [to_z_up(c, self.rotation) for c in self.clouds]
+
+
+@dataclass
+class Answer:
+    """One message's results: labels (M,), scores (M,), topk_ids / topk_scores (M, k)."""
+
+    job: Job
+    labels: np.ndarray
+    scores: np.ndarray
+    topk_ids: np.ndarray
+    topk_scores: np.ndarray
+
+    @property
+    def centroids(self) -> np.ndarray:
+        """(M, 3) float32 object centroids (computed in float64), input frame."""
+        return np.array([c.mean(axis=0, dtype=np.float64) for c in self.job.clouds],
+                        dtype=np.float32).reshape(-1, 3)
+
+
+Results = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+class Pipeline:
+    """Turns queued PointCloud2 messages into Answers (thread: the worker).
+
+    recognizer: a `point_gn_ros.recognizer.Recognizer`; warn(key, text): a rate-limited
+    logger; topic_names: display name per topic index (the node sets the resolved names);
+    frame_rotation(frame_id): rotation into z-up or None (node/frames.py UpConvention, or
+    later a tf2 lookup). `update()` swaps settings and/or the recognizer between batches.
+    """
+
+    def __init__(self, recognizer: Any, settings: Settings, stats: NodeStats,
+                 warn: Callable[[Hashable, str], object], stop: threading.Event) -> None:
+        self.recognizer = recognizer
+        self.settings = settings
+        self.topic_names: list[str] = list(settings.input_topics)
+        self.frame_rotation: Callable[[str], np.ndarray | None] = lambda frame_id: None
+        self._stats = stats
+        self._warn = warn
+        self._stop = stop
+        self._pending: tuple[Settings, Any] | None = None
+        self._pending_lock = threading.Lock()
+        self.update(settings, recognizer)
+        self._apply_pending()
+
+    def update(self, settings: Settings | None = None, recognizer: Any = None) -> None:
+        """Use new settings and/or another recognizer from the next batch on (any thread).
+
+        The swap happens between batches, so a batch is never classified half with the old
+        and half with the new. The caller has validated both (resolve_unknown_threshold).
+        """
+        with self._pending_lock:
+            old_s, old_r = self._pending or (self.settings, self.recognizer)
+            self._pending = (settings or old_s, recognizer or old_r)
+
+    def _apply_pending(self) -> None:
+        with self._pending_lock:
+            pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        settings, recognizer = pending
+        recognizer.top_k = settings.top_k
+        recognizer.classifier.unknown_threshold = resolve_unknown_threshold(
+            recognizer.bank, settings.unknown_threshold)
+        self.settings, self.recognizer = settings, recognizer
+
+    @property
+    def class_names(self) -> list[str]:
+        return list(self.recognizer.class_names)
+
+    # ------------------------------------------------------------------ worker loop
+
+    def serve(self, queue: WorkQueue[Any], publish: Callable[[Answer], None],
+              alive: Callable[[], bool] = lambda: True) -> None:
+        """Worker thread body: take micro-batches until stopped; never dies on one bad batch.
+
+        alive(): False once the middleware is shut down (a failure then ends the loop
+        quietly instead of being reported).
+        """
+        while not self._stop.is_set():
+            items = queue.take(self.settings.max_batch, timeout=0.5)
+            if not items:
+                continue
+            try:
+                self.process(items, publish)
+            except Exception as exc:  # noqa: BLE001 - the node must outlive any one batch
+                if self._stop.is_set() or not alive():
+                    return
+                self.on_failure(len(items), exc)
+
+    def process(self, items: Sequence[QueueItem[Any]], publish: Callable[[Answer], None]
+                ) -> None:
+        """Prepare, classify and publish one micro-batch of messages."""
+        self._apply_pending()
+        jobs = [job for job in map(self.prepare, items) if job is not None]
+        try:
+            results = self.classify([c for job in jobs for c in job.model_clouds()])
+        except Exception:
+            if len(jobs) <= 1 or self._stop.is_set():
+                raise
+            # One message broke the batch: classify message by message, so only that
+            # message is lost and the others are still answered.
+            for job in jobs:
+                try:
+                    for answer in self.answers([job], self.classify(job.model_clouds())):
+                        publish(answer)
+                except Exception as exc:  # noqa: BLE001 - see serve()
+                    if self._stop.is_set():
+                        return
+                    self.on_failure(1, exc)
+            return
+        for answer in self.answers(jobs, results):
+            publish(answer)
+
+    # ------------------------------------------------------------------ steps
+
+    def reject(self, item: QueueItem[Any], reason: str, detail: str) -> None:
+        """Count a rejected message and warn (rate-limited, per topic)."""
+        self._stats.on_rejected(reason)
+        self._warn((item.topic_index,),
+                   f'dropped a message on {self.topic_names[item.topic_index]}: {detail}')
+
+    def prepare(self, item: QueueItem[Any]) -> Job | None:
+        """Decode and split one message into object clouds; None if it is rejected."""
+        from point_gn_ros.pointcloud2 import decode_xyz, split_segments
+        s = self.settings
+        seg_field = s.segment_field
+        try:
+            # allow_empty: an empty or all-NaN cloud counts as 'too few points', not malformed.
+            decoded = decode_xyz(item.payload, (seg_field,) if seg_field else (),
+                                 allow_empty=True)
+            if not seg_field:
+                if len(decoded) < s.min_points:
+                    self.reject(item, REJECT_TOO_FEW, f'{len(decoded)} finite point(s), '
+                                                      f'min_points is {s.min_points}')
+                    return None
+                return Job(item, [-1], [decoded.xyz], self._rotation(item))
+            segments = split_segments(decoded, seg_field)
+        except DecodeError as exc:
+            self.reject(item, reason_key(str(exc)), str(exc))
+            return None
+        job = Job(item, [], [], self._rotation(item))
+        skipped = 0
+        for seg_id, xyz in segments:
+            if seg_id < 0:
+                continue          # unsegmented / background points by convention
+            if len(xyz) < s.min_points:
+                skipped += 1
+                continue
+            job.segment_ids.append(seg_id)
+            job.clouds.append(xyz)
+        if skipped:
+            self._stats.on_skipped_segments(skipped)
+        return job
+
+    def _rotation(self, item: QueueItem[Any]) -> np.ndarray | None:
+        return self.frame_rotation(item.payload.header.frame_id)
+
+    def classify(self, clouds: list[np.ndarray]) -> Results | None:
+        """Labels, scores, top-k ids and scores of clouds, in chunks of max_batch.
+
+        None when the node is stopping.
+        """
+        s = self.settings
+        recognizer = self.recognizer
+        k = min(s.top_k, len(recognizer.class_names))
+        parts = [(np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, k), np.int64),
+                  np.zeros((0, k), np.float32))]
+        for start in range(0, len(clouds), s.max_batch):
+            if self._stop.is_set():
+                return None
+            res = recognizer.classify_clouds(clouds[start:start + s.max_batch])
+            parts.append((res.labels, res.scores, res.topk_ids, res.topk_scores))
+        self._stats.on_batch(len(clouds))
+        return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
+
+    @staticmethod
+    def answers(jobs: Sequence[Job], results: Results | None) -> list[Answer]:
+        """Each job's slice of the batch results (zero objects allowed); [] when stopping."""
+        if results is None:
+            return []
+        out, pos = [], 0
+        for job in jobs:
+            sl = slice(pos, pos + len(job.clouds))
+            pos = sl.stop
+            out.append(Answer(job, *(column[sl] for column in results)))
+        return out
+
+    def on_failure(self, count: int, exc: Exception) -> None:
+        """Count and warn about `count` messages lost to an unexpected exception."""
+        self._stats.on_error(f'{type(exc).__name__}: {exc}')
+        self._warn(('error',), f'failed to classify {count} message(s): '
+                               f'{type(exc).__name__}: {exc}')
+
+
+def reason_key(text: str) -> str:
+    """A short reason to count by: the decode error's text without names, numbers, details.
+
+    "field 'x' (offset 8, 4 bytes) does not fit in point_step 8" -> "field does not fit in
+    point_step", so the number of distinct counters stays small.
+    """
+    text = re.sub(r'\([^)]*\)', '', text)
+    text = re.sub(r"'[^']*'|\"[^\"]*\"", '', text)
+    text = re.sub(r'[-+]?\d[\d,._]*', '', text)
+    text = re.split(r'[:;,=]', text)[0]
+    return ' '.join(text.split())[:60] or 'malformed'
