@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 import rclpy.logging
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
@@ -74,10 +74,9 @@ class ClassifierNode(Node):
             raise BankError(f'{bank.path}: bank was built for num_points='
                             f'{bank.config.num_points}, node parameter num_points='
                             f'{s.num_points}')
-        self.class_names = list(self.recognizer.class_names)
         # Read-only and taken from the bank: an override on the command line is ignored.
         self.declare_parameter(
-            'class_names', self.class_names,
+            'class_names', list(self.recognizer.class_names),
             ParameterDescriptor(type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True,
                                 description='Class names of the bank (index = class_id).'),
             ignore_override=True)
@@ -95,7 +94,7 @@ class ClassifierNode(Node):
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._pub_names = self.create_publisher(String, '~/class_names', latched)
-        self._pub_names.publish(String(data='\n'.join(self.class_names)))
+        self._publish_class_names(self._enrollment.live.current())
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
         self._queue: WorkQueue[PointCloud2] = WorkQueue(len(s.input_topics), s.queue_size)
@@ -105,6 +104,8 @@ class ClassifierNode(Node):
         self._diagnostics = DiagnosticsBuilder()
         self._stop = threading.Event()
         self._pipeline = Pipeline(self.recognizer, s, self._stats, self._warn, self._stop)
+        self._enrollment.attach(self._pipeline, list(s.input_topics), self._publish_class_names,
+                                self._warn, s.min_points)
         self._worker = threading.Thread(
             target=self._pipeline.serve, args=(self._queue, self._publish, self.context.ok),
             name='point_gn_worker', daemon=True)
@@ -141,19 +142,27 @@ class ClassifierNode(Node):
         return settings_from_values(values)
 
     def _make_recognizer(self) -> Any:
-        from point_gn_ros.bank.store import FeatureBank
+        from point_gn_ros.node.enrollment import Enrollment
         from point_gn_ros.recognizer import Recognizer, make_encoder
 
         s = self.settings
-        bank = FeatureBank.load(s.bank_path or None)
-        # The fast encoder runs its own worker pool (default: every CPU); it gets the
-        # same budget as torch, for the same reason.
-        encoder = make_encoder(bank.config, s.device, threads=s.torch_threads)
-        try:
+        encoder: list[Any] = []
+
+        def make_model(bank: Any) -> Recognizer:
+            """A recognizer for one bank version; every version shares one encoder."""
+            if not encoder:
+                # The fast encoder runs its own worker pool (default: every CPU); it gets
+                # the same budget as torch, for the same reason.
+                encoder.append(make_encoder(bank.config, s.device, threads=s.torch_threads))
             return Recognizer(bank, s.device, s.resample, s.top_k,
-                              s.unknown_threshold or None, encoder=encoder)
+                              s.unknown_threshold or None, encoder=encoder[0])
+
+        try:
+            # Loads the bank; every later version comes from live enrollment.
+            self._enrollment = Enrollment(self, s.bank_path or None, make_model)
         except ValueError as exc:       # e.g. unknown_threshold < 0 without a calibration
             raise NodeConfigError(str(exc)) from None
+        return self._enrollment.recognizer
 
     def _configure_torch(self) -> None:
         import torch
@@ -194,7 +203,12 @@ class ClassifierNode(Node):
                                  stamp_lat)
 
     def _label_name(self, class_id: int) -> str:
-        return self.class_names[class_id] if 0 <= class_id < len(self.class_names) else 'unknown'
+        names = self._pipeline.class_names          # the version that made this answer
+        return names[class_id] if 0 <= class_id < len(names) else 'unknown'
+
+    def _publish_class_names(self, snap: Any) -> None:
+        """(Re)publish the class list of a bank version (latched; after every change)."""
+        self._pub_names.publish(String(data='\n'.join(snap.class_names)))
 
     # ------------------------------------------------------------------ diagnostics
 
@@ -202,8 +216,9 @@ class ClassifierNode(Node):
         snap = self._stats.snapshot(self._queue.dropped(), self._queue.depths())
         arr = self._diagnostics.build(
             self.get_fully_qualified_name(), snap, self.settings, self._pipeline.topic_names,
-            self._worker.is_alive(), self.recognizer.bank,
-            self.recognizer.classifier.unknown_threshold)
+            self._worker.is_alive(), self._pipeline.recognizer.bank,
+            self._pipeline.recognizer.classifier.unknown_threshold)
+        arr.status.append(self._enrollment.diagnostic_status(self.get_fully_qualified_name()))
         arr.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(arr)
 
@@ -221,6 +236,7 @@ class ClassifierNode(Node):
         stop.set()
         self._queue.close()
         self._worker.join(WORKER_JOIN_TIMEOUT_S)
+        self._enrollment.close()
         # After Ctrl-C the context is already shut down and the node logger could not
         # publish to /rosout any more; a child logger only writes to the console.
         log = (self.get_logger() if self.context.ok()
@@ -239,7 +255,9 @@ def main(args: list[str] | None = None) -> int:
     code = 0
     try:
         node = ClassifierNode()
-        executor = SingleThreadedExecutor()
+        # Two threads: the enrollment services (own callback group) may wait for a save or
+        # a refit without holding up the input callbacks.
+        executor = MultiThreadedExecutor(num_threads=2)
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

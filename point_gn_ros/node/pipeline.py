@@ -86,6 +86,10 @@ class Pipeline:
         self._stop = stop
         self._pending: tuple[Settings, Any] | None = None
         self._pending_lock = threading.Lock()
+        # Optional worker hooks (node/enrollment.py): observe(jobs) sees each prepared
+        # micro-batch; between_batches() runs after each (and when idle), returns "more to do".
+        self.observe: Callable[[Sequence[Job]], None] | None = None
+        self.between_batches: Callable[[], bool] | None = None
         self.update(settings, recognizer)
         self._apply_pending()
 
@@ -123,22 +127,25 @@ class Pipeline:
         alive(): False once the middleware is shut down (a failure then ends the loop
         quietly instead of being reported).
         """
+        busy = False
         while not self._stop.is_set():
-            items = queue.take(self.settings.max_batch, timeout=0.5)
-            if not items:
-                continue
+            items = queue.take(self.settings.max_batch, timeout=0.0 if busy else 0.5)
             try:
-                self.process(items, publish)
+                if items:
+                    self.process(items, publish)
             except Exception as exc:  # noqa: BLE001 - the node must outlive any one batch
                 if self._stop.is_set() or not alive():
                     return
                 self.on_failure(len(items), exc)
+            busy = self.between_batches is not None and self.between_batches()
 
     def process(self, items: Sequence[QueueItem[Any]], publish: Callable[[Answer], None]
                 ) -> None:
         """Prepare, classify and publish one micro-batch of messages."""
         self._apply_pending()
         jobs = [job for job in map(self.prepare, items) if job is not None]
+        if self.observe is not None:
+            self.observe(jobs)
         try:
             results = self.classify([c for job in jobs for c in job.model_clouds()])
         except Exception:
