@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank import classifier as clf_mod
+from point_gn_ros.bank import head as head_mod
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.bank.classifier import UNKNOWN, Classifier, class_scores
 from point_gn_ros.core.config import EncoderConfig
@@ -48,7 +48,7 @@ def test_chunked_scores_equal_unchunked(monkeypatch: pytest.MonkeyPatch) -> None
     bank = _bank()
     q = torch.randn(50, bank.features.shape[1])
     full = Classifier(bank).scores(q)
-    monkeypatch.setattr(clf_mod, '_MAX_BLOCK', 1000)  # 5 queries per block
+    monkeypatch.setattr(head_mod, '_MAX_BLOCK', 1000)  # 5 queries per block
     assert torch.allclose(Classifier(bank).scores(q), full, atol=1e-6)
 
 

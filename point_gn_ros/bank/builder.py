@@ -13,7 +13,10 @@ import torch
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.bank.transform import FeatureTransform, Standardize
-from point_gn_ros.bank.selection import DEFAULT_GAMMAS, calibrate_unknown, select
+from point_gn_ros.bank.head import Head, fit_head
+from point_gn_ros.bank.selection import (DEFAULT_ALPHAS, DEFAULT_GAMMAS, DEFAULT_WEIGHTS,
+                                         Selection, calibrate_novelty, calibrate_unknown,
+                                         select)
 from point_gn_ros.recognizer import Encoder, encode_clouds, make_encoder
 
 
@@ -40,6 +43,19 @@ def encode_dataset(dataset, encoder: Encoder, batch_size: int = 64, progress: bo
     return feats
 
 
+def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel: Selection
+                 ) -> tuple[FeatureTransform, Head, torch.Tensor]:
+    """Fit the CV-chosen transform and head on all of feats (N, D).
+
+    -> transform, head, bank rows in the vote's space (N, d) float32.
+    """
+    tf = FeatureTransform.fit(feats, sel.standardize, sel.dims)
+    z = tf(feats)
+    head = fit_head(z, torch.as_tensor(np.asarray(labels), dtype=torch.int64), num_classes,
+                    sel.gamma, sel.alpha, sel.lda_alpha, sel.fusion_weight, sel.temperature)
+    return tf, head, head.vote_space(z)
+
+
 def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu',
                gammas: tuple[float, ...] = DEFAULT_GAMMAS,
                standardize_options: tuple[Standardize, ...] = ('none', 'standardize'),
@@ -47,19 +63,21 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                false_reject_rate: float = 0.05, progress: bool = True,
                cache_dir: Path | None = None, encoder: Encoder | None = None,
                feats: torch.Tensor | None = None,
-               groups: np.ndarray | None = None) -> FeatureBank:
-    """Encode `dataset`, choose gamma/transform by k-fold CV on it, return the bank.
+               groups: np.ndarray | None = None,
+               alphas: tuple[float, ...] = DEFAULT_ALPHAS,
+               weights: tuple[float, ...] = DEFAULT_WEIGHTS) -> FeatureBank:
+    """Encode `dataset`, choose transform and head by k-fold CV on it, return the bank.
 
     groups: (N,) int or None; entries sharing a group (an object and its simulated views)
-    stay in one CV fold.
+    stay in one CV fold. alphas=() gives the plain kernel vote (format-1 behaviour).
     """
     encoder = encoder or make_encoder(cfg, device)
     if feats is None:
         feats = encode_dataset(dataset, encoder, progress=progress, cache_dir=cache_dir)
     labels = np.asarray(dataset.labels, dtype=np.int64)
     sel = select(feats, labels, len(dataset.class_names), gammas, standardize_options,
-                 dims_options, folds, groups=groups)
-    tf = FeatureTransform.fit(feats, sel.standardize, sel.dims)
+                 dims_options, folds, groups=groups, alphas=alphas, weights=weights)
+    tf, head, vote_feats = fit_selected(feats, labels, len(dataset.class_names), sel)
     counts = Counter(labels.tolist())
     meta = {
         'provenance': {
@@ -70,12 +88,17 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
         },
         'selection': {'standardize': sel.standardize, 'dims': sel.dims, 'gamma': sel.gamma,
                       'cv_folds': folds, 'cv_accuracy': sel.cv_accuracy,
-                      'cv_grouped': groups is not None,
+                      'cv_grouped': groups is not None, 'table': sel.table,
                       'grid': {'gammas': list(gammas),
                                'standardize': list(standardize_options),
-                               'dims': list(dims_options)}},
-        'unknown_calibration': calibrate_unknown(sel.heldout_scores, false_reject_rate),
+                               'dims': list(dims_options), 'alphas': list(alphas),
+                               'weights': list(weights)}},
+        'head': sel.head_meta(),
     }
-    return FeatureBank(features=tf(feats), labels=torch.from_numpy(labels),
+    if sel.heldout_novelty is not None:
+        meta['unknown_calibration'] = calibrate_novelty(sel.heldout_novelty, false_reject_rate)
+        meta['probability_calibration'] = calibrate_unknown(sel.heldout_scores,
+                                                            false_reject_rate)
+    return FeatureBank(features=vote_feats, labels=torch.from_numpy(labels),
                        class_names=list(dataset.class_names), config=encoder.cfg, transform=tf,
-                       gamma=sel.gamma, meta=meta)
+                       gamma=sel.gamma, meta=meta, head=head)

@@ -1,10 +1,16 @@
-"""Bank classifier: cosine similarity, exp(-gamma (1 - cos)) votes per class, softmax.
+"""Bank classifier: the bank's head (bank/head.py) over cosine similarities to the bank.
 
-The reference computes `exp(-gamma (1 - cos)) @ onehot` and a softmax of that. With
-gamma in the thousands those sums underflow in float32, so we evaluate them in the
-log domain: log-evidence per class = logsumexp over its entries of -gamma (1 - cos),
-and score = softmax(log-evidence) = each class's share of the kernel votes. The
-argmax is the reference's; the score is a probability-like number in [0, 1].
+The paper's kernel vote sums exp(-gamma (1 - cos)) per class. With gamma in the
+thousands those sums underflow in float32, so they are evaluated relative to the
+best entry (log domain). The head fuses the vote (optionally on whitened features)
+with LDA log-posteriors and calibrates the result with a temperature:
+
+  probability (B, C)  calibrated class probabilities, rows sum to 1
+  scores      (B,)    probability of the top class
+  novelty     (B,)    1 - best cosine to any bank entry in the vote's space, [0, 2]
+
+A plain-vote bank (format 1, or one CV chose the vote for) has probability = each
+class's share of the kernel votes, as before.
 """
 
 from __future__ import annotations
@@ -25,15 +31,19 @@ _MAX_BLOCK = 1 << 24
 class Classification:
     """Per-query results, plain numpy.
 
-    labels (B,) int64, -1 = unknown; scores (B,) float32 (score of the best class,
-    also when it is rejected as unknown); topk_ids (B, k) int64; topk_scores (B, k)
-    float32.
+    labels (B,) int64, -1 = unknown; scores (B,) float32 (calibrated probability of
+    the best class, also when it is rejected as unknown); topk_ids (B, k) int64;
+    topk_scores (B, k) float32 (their probabilities); probability (B, C) float32
+    (rows sum to 1); novelty (B,) float32 (1 - best cosine to the bank in the vote's
+    space: 0 = identical to a bank entry, larger = less like anything in the bank).
     """
 
     labels: np.ndarray
     scores: np.ndarray
     topk_ids: np.ndarray
     topk_scores: np.ndarray
+    probability: np.ndarray | None = None
+    novelty: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -68,40 +78,67 @@ def class_scores(query: torch.Tensor, bank_feats: torch.Tensor, bank_labels: tor
 
 
 class Classifier:
-    """Classifies encoder features against a loaded bank."""
+    """Classifies encoder features against a loaded bank with the bank's head.
+
+    Unknown rule (label -1), exactly:
+      unknown_threshold None or 0   off
+      unknown_threshold > 0         top-1 calibrated probability < unknown_threshold
+      unknown_threshold < 0         the bank's calibration: novelty > its threshold
+                                    (format-1 banks: top-1 vote share < its threshold)
+      novelty_threshold > 0         novelty > novelty_threshold (also combinable)
+    """
 
     def __init__(self, bank: FeatureBank, device: str = 'cpu',
-                 unknown_threshold: float | None = None, gamma: float | None = None) -> None:
-        """unknown_threshold: None/0 = off; < 0 = the bank's calibrated threshold."""
+                 unknown_threshold: float | None = None, gamma: float | None = None,
+                 novelty_threshold: float | None = None) -> None:
+        """gamma: override the bank's (comparisons only)."""
         self.bank = bank
         self.device = torch.device(device)
-        self.gamma = float(gamma if gamma is not None else bank.gamma)
+        self.head = bank.classifier_head.to(self.device)
+        if gamma is not None:
+            self.head.gamma = float(gamma)
+        self.gamma = self.head.gamma
         self.transform = bank.transform.to(self.device)
         self.features = bank.features.to(self.device)
         self.labels = bank.labels.to(self.device)
+        self.novelty_threshold = novelty_threshold or None
         if unknown_threshold is not None and unknown_threshold < 0:
             calib = bank.meta.get('unknown_calibration')
             if not calib:
                 raise ValueError(f'{bank.path}: bank holds no calibrated unknown threshold')
-            unknown_threshold = float(calib['threshold'])
+            if calib.get('measure', 'probability') == 'novelty':
+                self.novelty_threshold = float(calib['threshold'])
+                unknown_threshold = None
+            else:
+                unknown_threshold = float(calib['threshold'])
         self.unknown_threshold = unknown_threshold or None
 
     @torch.no_grad()
+    def evaluate(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """features: (B, D) raw encoder output -> probability (B, C), novelty (B,)."""
+        z = self.transform(features.to(self.device))
+        return self.head.evaluate(z, self.features, self.labels, self.bank.num_classes)
+
+    @torch.no_grad()
     def scores(self, features: torch.Tensor) -> torch.Tensor:
-        """features: (B, D) raw encoder output -> (B, C) class scores."""
-        q = self.transform(features.to(self.device))
-        return class_scores(q, self.features, self.labels, self.bank.num_classes, self.gamma)
+        """features: (B, D) raw encoder output -> (B, C) calibrated class probabilities."""
+        return self.evaluate(features)[0]
 
     @torch.no_grad()
     def classify(self, features: torch.Tensor, top_k: int = 5) -> Classification:
         """features: (B, D) float32 raw encoder output -> Classification."""
-        s = self.scores(features).cpu()
-        k = max(1, min(top_k, s.shape[1]))
-        top_s, top_i = s.topk(k, dim=1)
+        prob, novelty = self.evaluate(features)
+        prob, novelty = prob.cpu(), novelty.cpu()
+        k = max(1, min(top_k, prob.shape[1]))
+        top_s, top_i = prob.topk(k, dim=1)
         labels = top_i[:, 0].clone()
         if self.unknown_threshold is not None:
             labels[top_s[:, 0] < self.unknown_threshold] = UNKNOWN
+        if self.novelty_threshold is not None:
+            labels[novelty > self.novelty_threshold] = UNKNOWN
         return Classification(labels=labels.numpy().astype(np.int64),
                               scores=top_s[:, 0].numpy().astype(np.float32),
                               topk_ids=top_i.numpy().astype(np.int64),
-                              topk_scores=top_s.numpy().astype(np.float32))
+                              topk_scores=top_s.numpy().astype(np.float32),
+                              probability=prob.numpy().astype(np.float32),
+                              novelty=novelty.numpy().astype(np.float32))

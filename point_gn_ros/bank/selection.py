@@ -1,6 +1,9 @@
-"""Choosing gamma, feature transform and open-set threshold by cross-validation on the bank.
+"""Choosing the head, feature transform and open-set threshold by cross-validation on the bank.
 
 Nothing here ever sees a test split: every figure is a held-out fold of the bank.
+One transform fit and one similarity product per fold and vote space, reused for
+every gamma; the whitening for every shrinkage comes from one eigen-decomposition
+per fold.
 """
 
 from __future__ import annotations
@@ -11,10 +14,15 @@ import itertools
 import numpy as np
 import torch
 
-from point_gn_ros.bank.classifier import votes_from_similarity
+from point_gn_ros.bank.head import CovarianceFit, best_temperature, log_vote_shares_grid
 from point_gn_ros.bank.transform import FeatureTransform, Standardize
 
-DEFAULT_GAMMAS = tuple(float(g) for g in np.geomspace(5, 5000, 19).round(1))
+# Doubling steps: one exp() serves the whole grid (head.log_vote_shares_grid).
+DEFAULT_GAMMAS = tuple(5.0 * 2.0 ** k for k in range(11))          # 5 .. 5120
+DEFAULT_ALPHAS = (0.05, 0.1, 0.2, 0.4)
+DEFAULT_WEIGHTS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
+# Gamma of the plain vote when the bank is too small to cross-validate anything.
+FALLBACK_GAMMA = 100.0
 
 
 def stratified_folds(labels: np.ndarray, k: int = 5, seed: int = 0,
@@ -62,70 +70,197 @@ def stratified_folds(labels: np.ndarray, k: int = 5, seed: int = 0,
 
 @dataclass
 class Selection:
-    """Best knobs and the CV table they were picked from."""
+    """Best knobs, the CV table they were picked from and the held-out figures.
+
+    The plain vote is alpha None, whiten_vote False, fusion_weight 0, temperature 1.
+    """
 
     gamma: float
     standardize: Standardize
     dims: int | None
     cv_accuracy: float
     table: list[dict] = field(default_factory=list)
-    heldout_scores: np.ndarray | None = None    # (N,) top-1 score of each entry, held out
+    heldout_scores: np.ndarray | None = None    # (N,) held-out calibrated top-1 probability
     heldout_correct: np.ndarray | None = None   # (N,) bool
+    heldout_novelty: np.ndarray | None = None   # (N,) held-out novelty (1 - best cosine)
+    alpha: float | None = None                  # shrinkage of the vote's whitening
+    whiten_vote: bool = False
+    lda_alpha: float | None = None              # shrinkage of the LDA covariance
+    fusion_weight: float = 0.0
+    temperature: float = 1.0
+    cv_log_loss: float | None = None
+    vote_cv_accuracy: float | None = None       # plain vote, best gamma, same CV folds
+    folds_used: int = 0
+    fallback: str | None = None                 # why CV was reduced or skipped
+
+    def head_meta(self) -> dict:
+        """JSON-ready head settings and CV figures (what `bank info` prints)."""
+        return {'alpha': self.alpha, 'whiten_vote': self.whiten_vote,
+                'lda_alpha': self.lda_alpha, 'fusion_weight': self.fusion_weight,
+                'temperature': self.temperature, 'cv_log_loss': self.cv_log_loss,
+                'vote_cv_accuracy': self.vote_cv_accuracy, 'folds_used': self.folds_used,
+                'fallback': self.fallback}
 
 
-def _fold_scores(feats: torch.Tensor, labels: torch.Tensor, num_classes: int,
-                 train: np.ndarray, val: np.ndarray, standardize: Standardize,
-                 dims: int | None, gammas: tuple[float, ...]) -> list[torch.Tensor]:
-    tf = FeatureTransform.fit(feats[train], standardize, dims)
-    sims = tf(feats[val]) @ tf(feats[train]).T      # once per fold, reused for every gamma
-    return [votes_from_similarity(sims, labels[train], num_classes, g) for g in gammas]
+def _min_class_groups(labels: np.ndarray, groups: np.ndarray | None) -> int:
+    """Fewest independent objects (groups, else entries) of any class."""
+    if groups is None:
+        return int(np.bincount(labels).min()) if len(labels) else 0
+    pairs = np.unique(np.stack([labels, np.asarray(groups)]), axis=1)
+    return int(np.bincount(pairs[0]).min())
+
+
+@dataclass
+class _FoldScores:
+    """Out-of-fold scores of one (standardize, dims) over the whole bank."""
+
+    votes: dict[float | None, torch.Tensor]     # vote space (None: plain) -> (G, N, C) log shares
+    best_cos: dict[float | None, torch.Tensor]  # vote space -> (N,) best cosine to the fold bank
+    lda: dict[float, torch.Tensor]              # alpha -> (N, C) LDA log-probabilities
+
+
+def _fold_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
+                 parts: list[np.ndarray], standardize: Standardize, dims: int | None,
+                 gammas: tuple[float, ...], alphas: tuple[float, ...],
+                 whiten_options: tuple[bool, ...]) -> _FoldScores:
+    n, g = len(lab), len(gammas)
+    spaces: list[float | None] = [None] if False in whiten_options else []
+    if True in whiten_options:
+        spaces += list(alphas)
+    out = _FoldScores({a: torch.zeros(g, n, num_classes) for a in spaces},
+                      {a: torch.zeros(n) for a in spaces},
+                      {a: torch.zeros(n, num_classes) for a in alphas})
+    everything = np.arange(n)
+
+    def vote(space: float | None, sims: torch.Tensor, val: np.ndarray, train: np.ndarray) -> None:
+        vi = torch.from_numpy(val)
+        out.best_cos[space][vi] = sims.max(dim=1).values
+        for gi, logv in enumerate(log_vote_shares_grid(sims, lab[train], num_classes, gammas)):
+            out.votes[space][gi, vi] = logv
+
+    for val in parts:
+        train = np.setdiff1d(everything, val)
+        tf = FeatureTransform.fit(feats[train], standardize, dims)
+        z_tr, z_val = tf(feats[train]), tf(feats[val])
+        if None in spaces:
+            vote(None, z_val @ z_tr.T, val, train)   # once per fold, reused for every gamma
+        if not alphas:
+            continue
+        fit = CovarianceFit.fit(z_tr, lab[train], num_classes)
+        p_tr, p_val = z_tr.double() @ fit.evecs, z_val.double() @ fit.evecs
+        pm = fit.means @ fit.evecs
+        for a in alphas:
+            inv = 1.0 / fit.shrunk(a)
+            logits = (p_val * inv) @ pm.T - 0.5 * (pm * pm * inv).sum(1) + fit.log_prior
+            out.lda[a][torch.from_numpy(val)] = torch.log_softmax(logits, dim=1).float()
+            if a in spaces:
+                root = inv.sqrt()
+                u_tr = torch.nn.functional.normalize((p_tr * root).float(), dim=1)
+                u_val = torch.nn.functional.normalize((p_val * root).float(), dim=1)
+                vote(a, u_val @ u_tr.T, val, train)
+    return out
 
 
 def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
            gammas: tuple[float, ...] = DEFAULT_GAMMAS,
            standardize_options: tuple[Standardize, ...] = ('none', 'standardize'),
            dims_options: tuple[int | None, ...] = (None,), folds: int = 5,
-           seed: int = 0, groups: np.ndarray | None = None) -> Selection:
+           seed: int = 0, groups: np.ndarray | None = None,
+           alphas: tuple[float, ...] = DEFAULT_ALPHAS,
+           weights: tuple[float, ...] = DEFAULT_WEIGHTS,
+           whiten_options: tuple[bool, ...] = (False, True)) -> Selection:
     """Grid search by stratified k-fold CV on the bank.
 
     feats: (N, D) float32 raw encoder features; labels: (N,) int; groups: (N,) int or
-    None (entries of one group never split across folds). Returns the
-    combination with the best mean held-out accuracy (ties: the earlier, simpler one).
+    None (entries of one group never split across folds). Chooses standardisation,
+    PCA width, whether the vote runs on whitened features (and their shrinkage),
+    gamma, the LDA shrinkage and fusion weight by held-out accuracy (ties: the earlier,
+    simpler one: plain vote, smaller weight), then the temperature by held-out
+    log-loss. alphas=() or weights=(0,) gives the plain kernel vote. With fewer than
+    `folds` objects in some class the folds shrink to that count; with one, no CV is
+    possible and the plain vote with FALLBACK_GAMMA is returned (`fallback` says why).
     """
-    lab = torch.from_numpy(np.asarray(labels, dtype=np.int64))
-    parts = stratified_folds(np.asarray(labels), folds, seed, groups)
-    everything = np.arange(len(labels))
-    table = []
-    best = None
+    labels = np.asarray(labels, dtype=np.int64)
+    lab = torch.from_numpy(labels)
+    m = _min_class_groups(labels, groups)
+    if m < 2:
+        return Selection(gamma=FALLBACK_GAMMA, standardize=standardize_options[0], dims=None,
+                         cv_accuracy=float('nan'), folds_used=0,
+                         fallback=f'a class has {m} independent example(s): no held-out data '
+                                  f'for CV; plain kernel vote, gamma {FALLBACK_GAMMA:g}')
+    k = min(folds, m)
+    fallback = None if k == folds else (f'a class has only {m} independent examples: '
+                                        f'{k}-fold CV instead of {folds}')
+    if not any(w > 0 for w in weights):
+        alphas = ()
+    if not alphas:
+        whiten_options = (False,)
+    weights = tuple(sorted({0.0, *weights}))
+    parts = stratified_folds(labels, k, seed, groups)
+    table: list[dict] = []
+    best: tuple | None = None            # (acc, fused, settings, best_cos)
+    vote_best = -1.0
     for std, dims in itertools.product(standardize_options, dims_options):
-        correct = np.zeros((len(gammas), len(labels)), dtype=bool)
-        top = np.zeros((len(gammas), len(labels)), dtype=np.float32)
-        for val in parts:
-            train = np.setdiff1d(everything, val)
-            for gi, s in enumerate(_fold_scores(feats, lab, num_classes, train, val, std, dims,
-                                                gammas)):
-                best_s, pred = s.max(dim=1)
-                correct[gi, val] = (pred == lab[val]).numpy()
-                top[gi, val] = best_s.numpy()
-        acc = correct.mean(axis=1)
-        for g, a in zip(gammas, acc, strict=True):
-            table.append({'standardize': std, 'dims': dims, 'gamma': g, 'cv_accuracy': float(a)})
-        gi = int(np.argmax(acc))
-        if best is None or acc[gi] > best.cv_accuracy + 1e-12:
-            best = Selection(gamma=gammas[gi], standardize=std, dims=dims,
-                             cv_accuracy=float(acc[gi]), heldout_scores=top[gi],
-                             heldout_correct=correct[gi])
-    assert best is not None
-    best.table = table
-    return best
+        if dims is not None and dims >= min(len(p) for p in parts) * (k - 1):
+            continue                     # PCA wider than a fold's bank: not fittable
+        fs = _fold_scores(feats, lab, num_classes, parts, std, dims, gammas, alphas,
+                          whiten_options)
+        for space, votes in fs.votes.items():
+            for gi, gamma in enumerate(gammas):
+                v = votes[gi]
+                acc0 = float((v.argmax(1) == lab).double().mean())
+                if space is None:
+                    vote_best = max(vote_best, acc0)
+                row = {'standardize': std, 'dims': dims, 'whiten_alpha': space, 'gamma': gamma,
+                       'vote_accuracy': acc0, 'lda_alpha': None, 'weight': 0.0,
+                       'cv_accuracy': acc0}
+                cands = [(acc0, None, 0.0)]
+                for a, w in itertools.product(fs.lda, weights[1:]):
+                    acc = float(((v + w * fs.lda[a]).argmax(1) == lab).double().mean())
+                    cands.append((acc, a, w))
+                for acc, a, w in cands:
+                    if acc > row['cv_accuracy'] + 1e-12:
+                        row.update(cv_accuracy=acc, lda_alpha=a, weight=w)
+                table.append(row)
+                if best is None or row['cv_accuracy'] > best[0] + 1e-12:
+                    a, w = row['lda_alpha'], row['weight']
+                    fused = v + w * fs.lda[a] if w > 0 else v.clone()
+                    best = (row['cv_accuracy'], fused, dict(row), fs.best_cos[space].clone())
+    if best is None:
+        raise ValueError('no (standardize, dims) option fits this bank')
+    acc, fused, row, best_cos = best
+    t, loss = best_temperature(fused, labels)
+    prob = torch.softmax(fused.double() / t, dim=1)
+    top, pred = prob.max(dim=1)
+    return Selection(gamma=row['gamma'], standardize=row['standardize'], dims=row['dims'],
+                     cv_accuracy=acc, table=table, heldout_scores=top.float().numpy(),
+                     heldout_correct=(pred == lab).numpy(),
+                     heldout_novelty=(1.0 - best_cos).clamp_min(0).numpy(),
+                     alpha=row['whiten_alpha'], whiten_vote=row['whiten_alpha'] is not None,
+                     lda_alpha=row['lda_alpha'], fusion_weight=row['weight'], temperature=t,
+                     cv_log_loss=loss, vote_cv_accuracy=vote_best if vote_best >= 0 else None,
+                     folds_used=k, fallback=fallback)
 
 
 def calibrate_unknown(heldout_scores: np.ndarray, false_reject_rate: float = 0.05) -> dict:
-    """Threshold on the top-1 score rejecting `false_reject_rate` of held-out bank objects.
+    """Threshold on the top-1 probability rejecting `false_reject_rate` of held-out bank objects.
 
     Every bank object is a known class, so the share of them falling below the
     threshold is exactly the false-reject rate expected on in-distribution input.
     """
     thr = float(np.quantile(heldout_scores, false_reject_rate))
-    return {'threshold': thr, 'false_reject_rate': float(false_reject_rate),
+    return {'measure': 'probability', 'threshold': thr,
+            'false_reject_rate': float(false_reject_rate),
             'method': f'{false_reject_rate:.0%} quantile of held-out (k-fold) top-1 scores'}
+
+
+def calibrate_novelty(heldout_novelty: np.ndarray, false_reject_rate: float = 0.05) -> dict:
+    """Threshold on novelty rejecting `false_reject_rate` of held-out bank objects.
+
+    Objects whose novelty exceeds it are unknown; held-out novelty is measured against
+    the rest of the bank (k-fold), so it errs on the side of rejecting fewer.
+    """
+    thr = float(np.quantile(heldout_novelty, 1.0 - false_reject_rate))
+    return {'measure': 'novelty', 'threshold': thr,
+            'false_reject_rate': float(false_reject_rate),
+            'method': f'{1 - false_reject_rate:.0%} quantile of held-out (k-fold) novelty'}

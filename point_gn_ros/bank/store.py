@@ -1,13 +1,22 @@
 """Feature bank file: encoded reference objects, their labels and how they were made.
 
-Format (one `.npz`, read with allow_pickle=False, never unpickled):
-  features     (N, d) float16 or float32  transformed, L2-normalised bank features
-  labels       (N,) int32                 class index of each entry
-  tf_mean      (D,) float32               feature transform fitted on the bank
-  tf_scale     (D,) float32
-  tf_projection (D, d) float32            optional PCA projection
-  meta         (M,) uint8                 UTF-8 JSON: versions, encoder config, class
-                                          names, gamma, calibration, provenance
+Format version 2 (one `.npz`, read with allow_pickle=False, never unpickled):
+  features      (N, d) float16 or float32  bank features in the vote's space: transformed,
+                                           L2-normalised and, when the head whitens,
+                                           whitened and re-normalised (`Head.vote_space`)
+  labels        (N,) int32                 class index of each entry
+  tf_mean       (D,) float32               feature transform fitted on the bank
+  tf_scale      (D,) float32
+  tf_projection (D, d) float32             optional PCA projection
+  head_whiten   (d, d) float32             optional: whitening of the vote (bank/head.py)
+  head_lda_coef (C, d) float32             optional: LDA logits = z coef^T + bias
+  head_lda_bias (C,) float32
+  meta          (M,) uint8                 UTF-8 JSON: versions, encoder config, class
+                                           names, gamma, head (fusion weight, temperature,
+                                           shrinkage, CV figures), calibration, provenance
+
+Version-1 banks (kernel vote only, no head) still load, as the plain vote, with a
+log line saying so; `point_gn bank build` rebuilds them with the head.
 """
 
 from __future__ import annotations
@@ -15,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import io
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Any
@@ -25,9 +35,15 @@ import torch
 
 from point_gn_ros.core.config import ENCODER_VERSION, EncoderConfig
 from point_gn_ros.errors import BankError
+from point_gn_ros.bank.head import Head
 from point_gn_ros.bank.transform import FeatureTransform
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+# Older formats that still load (as the plain kernel vote).
+VOTE_ONLY_VERSIONS = (1,)
+REBUILD_HINT = 'point_gn bank build DATASET -o BANK (make default-bank for the shipped one)'
+_HEAD_ARRAYS = ('head_whiten', 'head_lda_coef', 'head_lda_bias')
+log = logging.getLogger(__name__)
 DEFAULT_BANK_NAME = 'modelnet40_default.npz'
 _REQUIRED = ('features', 'labels', 'tf_mean', 'tf_scale', 'meta')
 
@@ -63,6 +79,12 @@ class FeatureBank:
     gamma: float
     meta: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
+    head: Head | None = None          # None: the plain kernel vote with `gamma`
+
+    @property
+    def classifier_head(self) -> Head:
+        """The head the classifier runs: the stored one, else the plain vote."""
+        return self.head if self.head is not None else Head(self.gamma)
 
     @property
     def num_classes(self) -> int:
@@ -75,8 +97,13 @@ class FeatureBank:
         prov = self.meta.get('provenance', {})
         src = prov.get('dataset', '?')
         split = prov.get('split', '?')
+        head = self.classifier_head
+        kind = ('plain kernel vote' if head.is_plain_vote else
+                f'{"whitened " if head.whiten is not None else ""}vote'
+                f'{f" + {head.fusion_weight:g} x LDA" if head.lda_coef is not None else ""}')
         return (f'{len(self)} entries, {self.num_classes} classes, dim {self.features.shape[1]} '
-                f'({self.meta.get("stored_dtype", "float32")}), gamma {self.gamma:g}, '
+                f'({self.meta.get("stored_dtype", "float32")}), {kind}, gamma {self.gamma:g}, '
+                f'T {head.temperature:.3g}, '
                 f'encoder v{self.meta.get("encoder_version")} {self.config.to_dict()}, '
                 f'from {src} [{split}]')
 
@@ -97,19 +124,28 @@ class FeatureBank:
         meta.update(format_version=FORMAT_VERSION, encoder_version=ENCODER_VERSION,
                     encoder_config=self.config.to_dict(), class_names=list(self.class_names),
                     gamma=float(self.gamma), stored_dtype=dtype)
+        head = self.classifier_head
+        meta['head'] = {**meta.get('head', {}), 'fusion_weight': float(head.fusion_weight),
+                        'temperature': float(head.temperature)}
         arrays = {
             'features': self.features.cpu().numpy().astype(dtype),
             'labels': self.labels.cpu().numpy().astype(np.int32),
             'tf_mean': self.transform.mean.cpu().numpy().astype(np.float32),
             'tf_scale': self.transform.scale.cpu().numpy().astype(np.float32),
-            'meta': np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8),
         }
         if self.transform.projection is not None:
             arrays['tf_projection'] = self.transform.projection.cpu().numpy().astype(np.float32)
+        arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
+        for name, t in zip(_HEAD_ARRAYS, (head.whiten, head.lda_coef, head.lda_bias),
+                           strict=True):
+            if t is not None:
+                arrays[name] = t.cpu().numpy().astype(np.float32)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + '.tmp')
         with open(tmp, 'wb') as f:
             np.savez_compressed(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(tmp, path)
         return path
 
@@ -148,9 +184,15 @@ class FeatureBank:
                 raise ValueError('not an object')
         except (ValueError, UnicodeDecodeError) as exc:
             raise bad(f'metadata is not valid JSON ({exc})') from None
-        if meta.get('format_version') != FORMAT_VERSION:
-            raise bad(f'format version {meta.get("format_version")!r} is not supported '
-                      f'(expected {FORMAT_VERSION})')
+        version = meta.get('format_version')
+        if version in VOTE_ONLY_VERSIONS:
+            log.warning('%s: bank format version %s holds no discriminant head: loaded as the '
+                        'plain kernel vote (scores are vote shares, no novelty calibration); '
+                        'rebuild it for calibrated probabilities: %s', path, version,
+                        REBUILD_HINT)
+        elif version != FORMAT_VERSION:
+            raise bad(f'format version {version!r} is not supported (expected {FORMAT_VERSION}; '
+                      f'rebuild: {REBUILD_HINT})')
         if meta.get('encoder_version') != ENCODER_VERSION:
             raise bad(f'built by encoder version {meta.get("encoder_version")!r}, running '
                       f'encoder is version {ENCODER_VERSION}: rebuild the bank')
@@ -187,10 +229,43 @@ class FeatureBank:
             raise bad('tf_scale must be positive')
         if not (np.isfinite(gamma) and gamma > 0):
             raise bad(f'gamma must be positive, got {gamma}')
+        head = None if version in VOTE_ONLY_VERSIONS else cls._head_from_arrays(
+            bad, a, meta, gamma, out_dim, len(class_names))
         tf = FeatureTransform(torch.from_numpy(mean.astype(np.float32)),
                               torch.from_numpy(scale.astype(np.float32)),
                               None if proj is None else torch.from_numpy(proj.astype(np.float32)))
         features = torch.nn.functional.normalize(torch.from_numpy(feats.astype(np.float32)), dim=1)
         return cls(features=features, labels=torch.from_numpy(labels.astype(np.int64)),
                    class_names=class_names, config=cfg, transform=tf, gamma=gamma, meta=meta,
-                   path=path)
+                   path=path, head=head)
+
+    @staticmethod
+    def _head_from_arrays(bad, a: dict[str, np.ndarray], meta: dict[str, Any], gamma: float,
+                          dim: int, num_classes: int) -> Head:
+        """Validate and build the stored head (format 2); `bad` makes a BankError."""
+        hm = meta.get('head')
+        if not isinstance(hm, dict):
+            raise bad('metadata holds no head settings')
+        try:
+            weight, temp = float(hm['fusion_weight']), float(hm['temperature'])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise bad(f'incomplete head metadata ({exc})') from None
+        if not (np.isfinite(weight) and weight >= 0 and np.isfinite(temp) and temp > 0):
+            raise bad(f'head fusion weight {weight} / temperature {temp} out of range')
+        shapes = {'head_whiten': (dim, dim), 'head_lda_coef': (num_classes, dim),
+                  'head_lda_bias': (num_classes,)}
+        got = {}
+        for name, shape in shapes.items():
+            arr = a.get(name)
+            if arr is None:
+                continue
+            if arr.shape != shape or arr.dtype.kind != 'f' or not np.isfinite(arr).all():
+                raise bad(f'{name} must be finite floats of shape {shape}, got {arr.dtype} '
+                          f'{arr.shape}')
+            got[name] = torch.from_numpy(arr.astype(np.float32))
+        if ('head_lda_coef' in got) != ('head_lda_bias' in got):
+            raise bad('head_lda_coef and head_lda_bias come together')
+        if weight > 0 and 'head_lda_coef' not in got:
+            raise bad('head fusion weight > 0 but no LDA arrays')
+        return Head(gamma, got.get('head_whiten'), got.get('head_lda_coef'),
+                    got.get('head_lda_bias'), weight, temp)

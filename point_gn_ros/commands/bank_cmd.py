@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from point_gn_ros.bank.selection import DEFAULT_ALPHAS, DEFAULT_WEIGHTS
 from point_gn_ros.commands.common import add_dataset_args, add_encoder_args
 
 # The paper's GPE width for real scans (ScanObjectNN); 0.4 (the default) for CAD models.
@@ -36,6 +37,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    choices=('none', 'centre', 'standardize'),
                    help='candidate feature standardisations to choose from by CV')
     b.add_argument('--folds', type=int, default=5, help='cross-validation folds (default 5)')
+    b.add_argument('--alphas', type=float, nargs='+', default=None,
+                   help='candidate covariance shrinkages of the discriminant head, chosen by '
+                        f'CV (default {" ".join(map(str, DEFAULT_ALPHAS))})')
+    b.add_argument('--weights', type=float, nargs='+', default=None,
+                   help='candidate LDA fusion weights, chosen by CV (0 = vote only; default '
+                        f'{" ".join(map(str, DEFAULT_WEIGHTS))})')
+    b.add_argument('--vote-only', action='store_true',
+                   help="no discriminant head: the paper's plain kernel vote")
     b.add_argument('--false-reject-rate', type=float, default=0.05,
                    help='open-set calibration target (default 0.05)')
     b.add_argument('--default-bank', action='store_true',
@@ -65,17 +74,55 @@ def _build(args: argparse.Namespace) -> int:
         args.dtype = 'float16'
         dims = args.dims and dims or [256, 384, 512]
     print(f'{ds.format} {ds.split}: {len(ds)} objects, {len(ds.class_names)} classes')
+    alphas = () if args.vote_only else tuple(args.alphas or DEFAULT_ALPHAS)
     bank = build_bank(ds, cfg, args.device, standardize_options=tuple(args.standardize),
                       dims_options=tuple(dims), folds=args.folds,
                       false_reject_rate=args.false_reject_rate,
-                      cache_dir=Path(args.cache) if args.cache else None)
+                      cache_dir=Path(args.cache) if args.cache else None, alphas=alphas,
+                      weights=tuple(args.weights or DEFAULT_WEIGHTS))
     path = bank.save(args.output, dtype=args.dtype)
-    sel = bank.meta['selection']
-    print(f'chosen by {args.folds}-fold CV on {ds.split}: standardize={sel["standardize"]} '
-          f'dims={sel["dims"] or "all"} gamma={sel["gamma"]:g} '
-          f'(CV accuracy {100 * sel["cv_accuracy"]:.2f} %)')
+    print(f'chosen by {args.folds}-fold CV on {ds.split}:')
+    print('\n'.join(describe_selection(bank.meta)))
     print(f'wrote {path} ({path.stat().st_size / 1e6:.1f} MB): {len(bank)} entries')
     return 0
+
+
+def describe_selection(meta: dict) -> list[str]:
+    """Lines describing a bank's CV choices, head and calibration (build and info)."""
+    lines = []
+    sel, head = meta.get('selection', {}), meta.get('head', {})
+    if sel:
+        lines.append(f'  transform: standardize={sel.get("standardize")} '
+                     f'dims={sel.get("dims") or "all"}; gamma={sel.get("gamma"):g}; '
+                     f'{sel.get("cv_folds")}-fold CV'
+                     f'{" (grouped)" if sel.get("cv_grouped") else ""} accuracy '
+                     f'{100 * sel.get("cv_accuracy", float("nan")):.2f} %')
+    if head.get('folds_used') is not None or head.get('fallback'):
+        space = 'plain'
+        if head.get('whiten_vote'):
+            space = f'whitened (shrinkage {head["alpha"]:g})'
+        lda = f'{head.get("fusion_weight", 0):g} x LDA log-probabilities'
+        if head.get('lda_alpha') is not None and head.get('fusion_weight'):
+            lda += f' (shrinkage {head["lda_alpha"]:g})'
+        loss = head.get('cv_log_loss')
+        lines.append(f'  head: kernel vote on {space} features + {lda}; temperature '
+                     f'{head.get("temperature", 1):.3g}'
+                     + (f', CV log-loss {loss:.3f}' if loss is not None else ''))
+        vote = head.get('vote_cv_accuracy')
+        if vote is not None:
+            lines.append(f'  plain kernel vote on the same folds: CV accuracy {100 * vote:.2f} %')
+        if head.get('fallback'):
+            lines.append(f'  CV fallback: {head["fallback"]}')
+    elif meta.get('format_version', 2) == 1:
+        lines.append('  head: none (format 1: plain kernel vote; rebuild for the head)')
+    cal = meta.get('unknown_calibration')
+    if cal:
+        what = ('novelty above' if cal.get('measure') == 'novelty'
+                else 'top-1 probability below')
+        lines.append(f'  default unknown rule: {what} {cal["threshold"]:.4f} '
+                     f'(false-reject rate {100 * cal["false_reject_rate"]:.0f} % on held-out '
+                     'folds)')
+    return lines
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -86,15 +133,7 @@ def _info(args: argparse.Namespace) -> int:
         print(json.dumps(bank.meta, indent=2, sort_keys=True))
         return 0
     print(f'{bank.path}: {bank.summary()}')
-    sel = bank.meta.get('selection', {})
-    if sel:
-        print(f'  selection ({sel.get("cv_folds")}-fold CV on the bank): '
-              f'standardize={sel.get("standardize")} dims={sel.get("dims") or "all"} '
-              f'gamma={sel.get("gamma"):g} cv_accuracy={100 * sel.get("cv_accuracy", 0):.2f} %')
-    cal = bank.meta.get('unknown_calibration')
-    if cal:
-        print(f'  unknown threshold {cal["threshold"]:.4f} '
-              f'(false-reject rate {100 * cal["false_reject_rate"]:.0f} %)')
+    print('\n'.join(describe_selection(bank.meta)))
     prov = bank.meta.get('provenance', {})
     print(f'  created {prov.get("created", "?")}; classes: {", ".join(bank.class_names)}')
     return 0

@@ -26,6 +26,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument('--random-yaw', type=int, default=None, metavar='SEED',
                    help='rotate every object by a random angle about z (seeded): how the bank '
                         'copes with objects seen from any side')
+    e.add_argument('--open-set', default=None, metavar='N_OR_CLASSES',
+                   help='open-set run: build BANK (or reuse it if it holds exactly these '
+                        'classes) from the train split of N classes drawn with --open-set-seed '
+                        '(or the comma-separated class names), query the whole split, report '
+                        'novelty AUROC (unseen vs known), known accuracy and unknown recall '
+                        "at the bank's default threshold")
+    e.add_argument('--open-set-seed', type=int, default=0, help='seed of the known classes')
     e.set_defaults(func=_eval)
 
     f = sub.add_parser('fewshot', help='N-way K-shot episodes (default: the paper settings)')
@@ -51,6 +58,8 @@ def _eval(args: argparse.Namespace) -> int:
     from point_gn_ros.evaluation.metrics import accuracy_report, format_report, plot_confusion
     from point_gn_ros.recognizer import make_encoder
 
+    if args.open_set:
+        return _eval_open_set(args)
     bank = FeatureBank.load(args.bank)
     ds = open_dataset_from_args(args)
     if list(ds.class_names) != list(bank.class_names):
@@ -79,6 +88,66 @@ def _eval(args: argparse.Namespace) -> int:
         print(json.dumps({k: v for k, v in report.items() if k != 'confusion'}, indent=2))
     else:
         print(format_report(report, f'{Path(ds.path).name} [{ds.split}] vs {bank.path.name}'))
+    return 0
+
+
+def _eval_open_set(args: argparse.Namespace) -> int:
+    """Known classes' bank from the train split (CV on it only), then the query split once."""
+    import copy
+
+    import torch
+
+    from point_gn_ros.bank.builder import build_bank, encode_dataset
+    from point_gn_ros.bank.classifier import Classifier
+    from point_gn_ros.bank.store import FeatureBank
+    from point_gn_ros.commands.common import open_dataset_from_args
+    from point_gn_ros.core.config import EncoderConfig
+    from point_gn_ros.errors import BankError
+    from point_gn_ros.evaluation.openset import KnownSubset, choose_known, open_set_report
+    from point_gn_ros.recognizer import make_encoder
+
+    ds = open_dataset_from_args(args)
+    known = choose_known(args.open_set, list(ds.class_names), args.open_set_seed)
+    names = [ds.class_names[i] for i in known]
+    cache = Path(args.cache) if args.cache else None
+    try:
+        bank = FeatureBank.load(args.bank)
+        if bank.class_names != names:
+            raise BankError(f'{args.bank}: holds other classes; rebuilding')
+        enc = make_encoder(bank.config, args.device)
+    except BankError as exc:
+        if Path(args.bank).exists():
+            print(f'{exc}')
+        train_args = copy.copy(args)
+        train_args.split = 'train'
+        train = open_dataset_from_args(train_args)
+        enc = make_encoder(EncoderConfig(), args.device)
+        f_train = encode_dataset(train, enc, args.batch_size, progress=not args.json,
+                                 cache_dir=cache)
+        sub = KnownSubset(train, known)
+        bank = build_bank(sub, encoder=enc, feats=f_train[torch.from_numpy(sub.index)],
+                          progress=not args.json)
+        bank.save(args.bank)
+    feats = encode_dataset(ds, enc, args.batch_size, progress=not args.json, cache_dir=cache)
+    clf = Classifier(bank, args.device, unknown_threshold=-1)
+    res = clf.classify(torch.as_tensor(feats), top_k=1)
+    report = open_set_report(np.asarray(ds.labels), known, res.labels, res.novelty, res.scores,
+                             res.topk_ids[:, 0])
+    report.update(bank=str(args.bank), dataset=str(ds.path), split=ds.split,
+                  known_classes=names, unknown_rule=bank.meta.get('unknown_calibration'),
+                  head=bank.meta.get('head'))
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(f'## open set: {len(known)} known classes (bank {args.bank}), '
+              f'{len(ds.class_names) - len(known)} unseen; {Path(ds.path).name} [{ds.split}]')
+        for key in ('known_objects', 'unseen_objects'):
+            print(f'- {key.replace("_", " ")}: {report[key]}')
+        for key in ('auroc_novelty', 'auroc_top_probability'):
+            print(f'- {key.replace("_", " ")}: {report[key]:.4f}')
+        for key in ('known_accuracy_closed_set', 'known_accuracy_at_threshold',
+                    'known_false_reject_rate', 'unknown_recall_at_threshold'):
+            print(f'- {key.replace("_", " ")}: {100 * report[key]:.2f} %')
     return 0
 
 

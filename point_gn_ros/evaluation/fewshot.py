@@ -1,4 +1,9 @@
-"""N-way K-shot episodes: a support set as the bank, queries classified against it."""
+"""N-way K-shot episodes: a support set as the bank, queries classified against it.
+
+Each episode's support set is a bank like any other: transform and head (whitened
+vote, LDA fusion, temperature) chosen by stratified k-fold CV on the support set
+alone (fewer folds, or the plain vote, when the shots are too few; see `select`).
+"""
 
 from __future__ import annotations
 
@@ -7,9 +12,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from point_gn_ros.bank.classifier import class_scores
-from point_gn_ros.bank.transform import FeatureTransform
-from point_gn_ros.bank.selection import DEFAULT_GAMMAS
+from point_gn_ros.bank.builder import fit_selected
+from point_gn_ros.bank.selection import select
+from point_gn_ros.bank.transform import Standardize
 
 PAPER_SETTINGS = ((5, 10), (5, 20), (10, 10), (10, 20))
 
@@ -31,25 +36,12 @@ def sample_episode(labels: np.ndarray, ways: int, shots: int, queries: int,
     return np.concatenate(support), np.concatenate(query), classes
 
 
-def _loo_gamma(feats: torch.Tensor, labels: torch.Tensor, ways: int) -> float:
-    """Gamma by leave-one-out on the support set alone."""
-    sims = feats @ feats.T
-    best_g, best_acc = DEFAULT_GAMMAS[0], -1.0
-    for g in DEFAULT_GAMMAS:
-        logits = (sims - 1.0) * g
-        logits.fill_diagonal_(-float('inf'))
-        logits = logits - logits.max(dim=1, keepdim=True).values
-        votes = torch.zeros(len(labels), ways).index_add_(1, labels, logits.exp())
-        acc = float((votes.argmax(1) == labels).float().mean())
-        if acc > best_acc + 1e-12:
-            best_g, best_acc = g, acc
-    return best_g
-
-
 def run_fewshot(labels: np.ndarray, encode: Callable[[np.ndarray], torch.Tensor], ways: int,
                 shots: int, queries: int = 20, episodes: int = 10,
-                seed: int = 0) -> dict:
-    """Mean and std accuracy over seeded episodes.
+                seed: int = 0, folds: int = 5,
+                standardize_options: tuple[Standardize, ...] = ('centre', 'standardize')
+                ) -> dict:
+    """Mean and std accuracy over seeded episodes, with the head each episode's CV chose.
 
     encode: indices (M,) -> raw features (M, D); called once for all episodes.
     """
@@ -57,17 +49,20 @@ def run_fewshot(labels: np.ndarray, encode: Callable[[np.ndarray], torch.Tensor]
     eps = [sample_episode(labels, ways, shots, queries, rng) for _ in range(episodes)]
     needed = np.unique(np.concatenate([np.concatenate(e[:2]) for e in eps]))
     feats = dict(zip(needed.tolist(), encode(needed), strict=True))
-    accs = []
+    accs, heads = [], []
     for support, query, classes in eps:
         remap = {int(c): i for i, c in enumerate(classes)}
         s_lab = torch.tensor([remap[int(labels[i])] for i in support])
         q_lab = torch.tensor([remap[int(labels[i])] for i in query])
         s_raw = torch.stack([feats[int(i)] for i in support])
         q_raw = torch.stack([feats[int(i)] for i in query])
-        tf = FeatureTransform.fit(s_raw, 'centre')
-        s, q = tf(s_raw), tf(q_raw)
-        gamma = _loo_gamma(s, s_lab, ways)
-        pred = class_scores(q, s, s_lab, ways, gamma).argmax(1)
+        sel = select(s_raw, s_lab.numpy(), ways, standardize_options=standardize_options,
+                     folds=folds, seed=seed)
+        tf, head, bank = fit_selected(s_raw, s_lab.numpy(), ways, sel)
+        pred = head.evaluate(tf(q_raw), bank, s_lab, ways)[0].argmax(1)
         accs.append(float((pred == q_lab).float().mean()))
+        heads.append({'vote_only': head.is_plain_vote, 'whitened': head.whiten is not None,
+                      'fusion_weight': head.fusion_weight, 'fallback': sel.fallback})
     return {'ways': ways, 'shots': shots, 'queries': queries, 'episodes': episodes,
-            'mean': float(np.mean(accs)), 'std': float(np.std(accs)), 'accuracies': accs}
+            'mean': float(np.mean(accs)), 'std': float(np.std(accs)), 'accuracies': accs,
+            'heads': heads}

@@ -1,0 +1,232 @@
+"""Closed-form discriminant head on bank features: whitened kernel vote fused with LDA.
+
+Fitted from the bank alone (no gradient training). On transformed bank features z
+(standardised, optionally PCA-projected, L2-normalised: `FeatureTransform`):
+
+  Sigma        pooled within-class covariance of z, (d, d)
+  Sigma_a      (1 - a) Sigma + a tr(Sigma)/d I             shrinkage a in (0, 1]
+  W            Sigma_a^(-1/2) (symmetric)                  whitening
+  u            normalize(z W)                              whitened, re-normalised
+  log_vote_c   log share of class c in sum_i exp(gamma (cos(u, u_i) - 1))
+  lda_c        z Sigma_a^-1 mu_c - mu_c Sigma_a^-1 mu_c / 2 + log prior_c
+  fused_c      log_vote_c + w log_softmax(lda)_c
+  probability  softmax(fused / T)                          T: temperature by CV log-loss
+  novelty      1 - max_i cos(u, u_i)                       in [0, 2]; 0 = a bank entry
+
+The plain kernel vote is the case W = None (vote on z), w = 0, T = 1: its
+probability is exactly the vote share. The bank stores its entries already
+whitened (u_i), so a query costs one (d, d) product more than the plain vote.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+# Upper bound on queries x bank entries held at once (float32 similarity block).
+_MAX_BLOCK = 1 << 24
+# exp() of a kernel logit this far below the best entry underflows float32: floor there.
+_TINY = float(torch.finfo(torch.float32).tiny)
+
+
+@dataclass
+class Head:
+    """A fitted head (see module docstring). Tensors float32 on one device.
+
+    whiten: (d, d) or None; lda_coef: (C, d) or None; lda_bias: (C,) or None.
+    """
+
+    gamma: float
+    whiten: torch.Tensor | None = None
+    lda_coef: torch.Tensor | None = None
+    lda_bias: torch.Tensor | None = None
+    fusion_weight: float = 0.0
+    temperature: float = 1.0
+
+    @property
+    def is_plain_vote(self) -> bool:
+        return self.whiten is None and (self.lda_coef is None or self.fusion_weight == 0)
+
+    def to(self, device: torch.device | str) -> 'Head':
+        def mv(t: torch.Tensor | None) -> torch.Tensor | None:
+            return None if t is None else t.to(device)
+        return Head(self.gamma, mv(self.whiten), mv(self.lda_coef), mv(self.lda_bias),
+                    self.fusion_weight, self.temperature)
+
+    def vote_space(self, z: torch.Tensor) -> torch.Tensor:
+        """z: (B, d) transformed unit rows -> (B, d) rows the kernel vote compares."""
+        if self.whiten is None:
+            return z
+        return torch.nn.functional.normalize(z @ self.whiten, dim=1, eps=1e-12)
+
+    def lda_log_probs(self, z: torch.Tensor) -> torch.Tensor | None:
+        """z: (B, d) -> (B, C) LDA log-posteriors, or None without an LDA part."""
+        if self.lda_coef is None or self.fusion_weight == 0:
+            return None
+        return torch.log_softmax(z @ self.lda_coef.T + self.lda_bias, dim=1)
+
+    def evaluate(self, z: torch.Tensor, bank_u: torch.Tensor, bank_labels: torch.Tensor,
+                 num_classes: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """z: (B, d) transformed queries; bank_u: (N, d) vote-space bank rows.
+
+        -> probability (B, C) float32 (rows sum to 1), novelty (B,) float32.
+        """
+        u = self.vote_space(z)
+        step = max(1, _MAX_BLOCK // max(1, bank_u.shape[0]))
+        logv, best = [], []
+        for q in u.split(step):
+            sims = q @ bank_u.T
+            logv.append(log_vote_shares(sims, bank_labels, num_classes, self.gamma))
+            best.append(sims.max(dim=1).values)
+        if not logv:
+            return torch.zeros(0, num_classes), torch.zeros(0)
+        fused = torch.cat(logv)
+        lda = self.lda_log_probs(z)
+        if lda is not None:
+            fused = fused + self.fusion_weight * lda
+        prob = torch.softmax(fused / self.temperature, dim=1)
+        return prob, (1.0 - torch.cat(best)).clamp_min(0.0)
+
+
+def log_vote_shares(sims: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,
+                    gamma: float) -> torch.Tensor:
+    """Log kernel-vote share of each class.
+
+    sims: (B, N) cosine to each bank entry; bank_labels: (N,) int64 -> (B, C) float32,
+    logsumexp over classes = 0. A class with no mass within float32 range of the best
+    entry gets log(tiny) (about -87) rather than -inf; one absent from the bank, -inf.
+    """
+    logits = (sims - 1.0) * gamma
+    top = logits.max(dim=1, keepdim=True).values
+    votes = torch.zeros(sims.shape[0], num_classes, dtype=logits.dtype, device=logits.device)
+    votes.index_add_(1, bank_labels, (logits - top).exp_())
+    present = torch.zeros(num_classes, dtype=torch.bool, device=sims.device)
+    present[bank_labels] = True
+    logv = votes.clamp_min(_TINY).log().masked_fill(~present, -float('inf'))
+    return logv - torch.logsumexp(logv, dim=1, keepdim=True)
+
+
+def log_vote_shares_grid(sims: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,
+                         gammas: tuple[float, ...]) -> list[torch.Tensor]:
+    """`log_vote_shares` for every gamma of a grid, one exp() per run of doublings.
+
+    exp(2 g (s - s_max)) = exp(g (s - s_max))^2, so a grid whose steps double costs one
+    exp and a squaring per further gamma (CV spends most of its time here).
+    """
+    present = torch.zeros(num_classes, dtype=torch.bool, device=sims.device)
+    present[bank_labels] = True
+    gap = sims - sims.max(dim=1, keepdim=True).values             # (B, N) <= 0
+    out, e, prev = [], None, None
+    for g in gammas:
+        if e is not None and prev is not None and abs(g - 2 * prev) < 1e-9 * g:
+            e.square_()
+        else:
+            e = (gap * g).exp_()
+        prev = g
+        votes = torch.zeros(sims.shape[0], num_classes, dtype=sims.dtype, device=sims.device)
+        votes.index_add_(1, bank_labels, e)
+        logv = votes.clamp_min(_TINY).log().masked_fill(~present, -float('inf'))
+        out.append(logv - torch.logsumexp(logv, dim=1, keepdim=True))
+    return out
+
+
+@dataclass
+class CovarianceFit:
+    """Class means and the eigen-decomposed pooled within-class covariance of z.
+
+    means (C, d); evals (d,) ascending >= 0; evecs (d, d) columns; log_prior (C,);
+    tau = tr(Sigma)/d (the shrinkage target's scale).
+    """
+
+    means: torch.Tensor
+    evals: torch.Tensor
+    evecs: torch.Tensor
+    log_prior: torch.Tensor
+    tau: float
+
+    @classmethod
+    def fit(cls, z: torch.Tensor, labels: torch.Tensor, num_classes: int) -> 'CovarianceFit':
+        """z: (N, d) float32; labels: (N,) int64 (every class present at least once)."""
+        z64 = z.double()
+        counts = torch.bincount(labels, minlength=num_classes).double()
+        if (counts == 0).any():
+            raise ValueError('every class needs at least one bank entry')
+        means = torch.zeros(num_classes, z.shape[1], dtype=torch.float64)
+        means.index_add_(0, labels, z64)
+        means /= counts[:, None]
+        centred = z64 - means[labels]
+        dof = max(1, len(labels) - num_classes)      # pooled, unbiased
+        cov = centred.T @ centred / dof
+        evals, evecs = torch.linalg.eigh(cov)
+        evals = evals.clamp_min(0.0)
+        tau = float(evals.sum() / z.shape[1])
+        return cls(means, evals, evecs, (counts / counts.sum()).log(), tau)
+
+    def shrunk(self, alpha: float) -> torch.Tensor:
+        """(d,) eigenvalues of Sigma_alpha, floored so a zero covariance stays invertible."""
+        lam = (1.0 - alpha) * self.evals + alpha * self.tau
+        return lam.clamp_min(max(1e-12, 1e-9 * float(lam.max())))
+
+    def whitening(self, alpha: float) -> torch.Tensor:
+        """Sigma_alpha^(-1/2): (d, d) float32, symmetric."""
+        v = self.evecs
+        return ((v * self.shrunk(alpha).rsqrt()) @ v.T).float()
+
+    def lda(self, alpha: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """LDA under Sigma_alpha: coef (C, d) float32, bias (C,) float32 (see module doc)."""
+        inv = 1.0 / self.shrunk(alpha)
+        pm = self.means @ self.evecs                  # means in the eigenbasis
+        coef = (pm * inv) @ self.evecs.T
+        bias = -0.5 * (pm * pm * inv).sum(1) + self.log_prior
+        return coef.float(), bias.float()
+
+
+def fit_head(z: torch.Tensor, labels: torch.Tensor, num_classes: int, gamma: float,
+             alpha: float | None = None, lda_alpha: float | None = None,
+             fusion_weight: float = 0.0, temperature: float = 1.0) -> Head:
+    """Fit the head on transformed bank rows z (N, d) with knobs chosen by CV.
+
+    alpha: shrinkage of the vote's whitening (None: vote on z); lda_alpha: shrinkage
+    of the LDA covariance (used when fusion_weight > 0).
+    """
+    use_lda = lda_alpha is not None and fusion_weight > 0
+    if alpha is None and not use_lda:
+        return Head(gamma, temperature=float(temperature))
+    fit = CovarianceFit.fit(z, labels, num_classes)
+    whiten = fit.whitening(alpha) if alpha is not None else None
+    coef, bias = fit.lda(lda_alpha) if use_lda else (None, None)
+    return Head(gamma, whiten, coef, bias, float(fusion_weight) if use_lda else 0.0,
+                float(temperature))
+
+
+def best_temperature(fused: np.ndarray | torch.Tensor, labels: np.ndarray) -> tuple[float, float]:
+    """Temperature minimising the log-loss of softmax(fused / T) on held-out rows.
+
+    fused: (N, C) held-out fused scores; labels: (N,) int -> (T, mean log-loss).
+    Golden-section search on log T over [1e-3, 1e4] after a coarse grid.
+    """
+    s = torch.as_tensor(fused, dtype=torch.float64)
+    y = torch.as_tensor(np.asarray(labels), dtype=torch.int64)
+    finite = torch.isfinite(s.gather(1, y[:, None]))[:, 0]
+    s, y = s[finite], y[finite]
+    if len(y) == 0:
+        return 1.0, float('nan')
+
+    def loss(log_t: float) -> float:
+        lp = torch.log_softmax(s / np.exp(log_t), dim=1)
+        return float(-lp.gather(1, y[:, None]).mean())
+
+    grid = np.linspace(np.log(1e-3), np.log(1e4), 57)
+    i = int(np.argmin([loss(g) for g in grid]))
+    lo, hi = grid[max(0, i - 1)], grid[min(len(grid) - 1, i + 1)]
+    r = (np.sqrt(5) - 1) / 2
+    for _ in range(30):
+        a, b = hi - r * (hi - lo), lo + r * (hi - lo)
+        if loss(a) < loss(b):
+            hi = b
+        else:
+            lo = a
+    t = float(np.exp((lo + hi) / 2))
+    return t, loss(np.log(t))
