@@ -28,7 +28,9 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from point_gn_ros.bank.selection import DEFAULT_GAMMAS, calibrate_unknown, select
+from point_gn_ros.bank.head import CovarianceFit, Head, fit_head
+from point_gn_ros.bank.selection import (DEFAULT_GAMMAS, calibrate_novelty, calibrate_unknown,
+                                         select)
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.errors import PointGNError
 
@@ -38,6 +40,8 @@ DUPLICATE_COSINE = 0.9995
 # 'auto' refits gamma by CV only on banks up to this many entries: on the 9,843-entry default
 # bank a CV pass costs seconds and the choice is dominated by the existing classes anyway.
 AUTO_CV_MAX_ENTRIES = 2000
+# LDA bias of a class that cannot be predicted (below min_examples): finite, never wins.
+_ABSENT_BIAS = -1e4
 # At most this many near-duplicate pairs are listed (the count is always exact).
 _MAX_LISTED = 20
 
@@ -213,7 +217,9 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
                           f'{bank.transform.in_dim}')
     if not bool(torch.isfinite(features).all()):
         raise EnrollError('features hold non-finite values')
-    stored_new = bank.transform(features.float().cpu()).numpy().astype(bf.stored.dtype)
+    z_new = bank.transform(features.float().cpu())                  # (M, d) unit rows
+    u_new = z_new if bank.head is None else bank.head.vote_space(z_new)
+    stored_new = u_new.numpy().astype(bf.stored.dtype)
     new = _from_stored(stored_new)                                   # (M, d) unit rows
     names = list(bank.class_names)
     new_class = class_name not in names
@@ -224,10 +230,11 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
     feats = torch.cat([bank.features, new])
     labels = torch.cat([bank.labels, torch.full((len(new),), cid, dtype=torch.int64)])
     meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups)
-    out = refit(replace(bank, features=feats, labels=labels, class_names=names, meta=meta,
-                        path=None), policy)
-    return EnrollResult(BankFile(out, np.concatenate([bf.stored, stored_new])), 'add',
-                        class_name, len(new), new_class, tuple(dups), n_dups, out.meta['refit'])
+    out, moved = refit(replace(bank, features=feats, labels=labels, class_names=names,
+                               meta=meta, path=None), policy)
+    stored = np.concatenate([bf.stored, stored_new])
+    return EnrollResult(_restore(out, stored, moved), 'add', class_name, len(new), new_class,
+                        tuple(dups), n_dups, out.meta['refit'])
 
 
 def remove_class(bf: BankFile, class_name: str, source: str = 'api',
@@ -247,55 +254,137 @@ def remove_class(bf: BankFile, class_name: str, source: str = 'api',
     names = [n for n in bank.class_names if n != class_name]
     removed = int((~keep).sum())
     meta = _log(bank, 'remove', class_name, removed, source, when)
-    out = refit(replace(bank, features=bank.features[keep], labels=labels, class_names=names,
-                        meta=meta, path=None), policy)
-    return EnrollResult(BankFile(out, bf.stored[keep.numpy()]), 'remove', class_name, removed,
-                        False, (), 0, out.meta['refit'])
+    out, moved = refit(replace(bank, features=bank.features[keep], labels=labels,
+                               class_names=names, meta=meta, path=None), policy)
+    return EnrollResult(_restore(out, bf.stored[keep.numpy()], moved), 'remove', class_name,
+                        removed, False, (), 0, out.meta['refit'])
 
 
-def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy()) -> FeatureBank:
-    """Re-decide what depends on the bank's entries; returns a new bank (meta['refit'] says how).
+def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy()) -> tuple[FeatureBank, bool]:
+    """Re-decide what depends on the bank's entries -> (new bank, whether rows were re-whitened).
 
-    The single hook where a bank's fitted parts are refreshed after its entries changed:
-    gamma (kept or re-chosen by CV) and the open-set threshold (kept or recalibrated on
-    held-out folds). The transform is always kept (see the module docstring).
+    The single hook where a bank's fitted parts are refreshed after its entries changed
+    (meta['refit'] records what was done):
+    - gamma and the head's knobs (whitening / LDA shrinkage, fusion weight, temperature) are
+      kept, or re-chosen by stratified k-fold CV on the bank (policy.gamma);
+    - the head (bank/head.py) is refitted in closed form on the bank's entries: with kept
+      knobs, the LDA class means, priors and pooled covariance (the vote's whitening is kept,
+      so stored rows do not move); after CV, the whole head, and every row is re-whitened;
+    - the open-set thresholds are recalibrated on held-out folds or kept (policy.calibration).
+    Classes below policy.min_examples take no part and can never win (see `active_view`).
+    The feature transform is always kept (see the module docstring).
     """
+    head = bank.head
     view = active_view(bank, policy.min_examples)
     meta = copy.deepcopy(bank.meta)
-    version = int(meta.get('bank_version', 0))
-    labels = view.labels.numpy()
-    counts = np.bincount(labels, minlength=bank.num_classes)
-    present = counts[counts > 0]
-    gamma, gamma_reason, heldout = bank.gamma, 'kept', None
+    labels_all = view.labels.numpy()
+    counts = np.bincount(labels_all, minlength=bank.num_classes)
+    present = np.flatnonzero(counts > 0)                  # class ids that take part
+    compact = torch.from_numpy(np.searchsorted(present, labels_all))
+    gamma, gamma_reason, sel = bank.gamma, 'kept', None
     want_cv = policy.gamma == 'cv' or (
         policy.gamma == 'auto' and len(view) <= policy.cv_max_entries
-        and present.min() >= policy.folds)
+        and counts[present].min() >= policy.folds)
+    grid = meta.get('selection', {}).get('grid', {})
+    folds = _folds(counts[present], policy.folds)
+    z_view = None
     if want_cv and len(present) >= 2:
-        grid = tuple(meta.get('selection', {}).get('grid', {}).get('gammas') or DEFAULT_GAMMAS)
-        sel = select(view.features, labels, bank.num_classes, grid, ('none',), (None,),
-                     _folds(present, policy.folds))
+        z_view = vote_to_z(view.features, head)
+        sel = select(z_view, np.asarray(compact), len(present),
+                     tuple(grid.get('gammas') or DEFAULT_GAMMAS), ('none',), (None,), folds,
+                     alphas=tuple(grid.get('alphas') or ()),
+                     weights=tuple(grid.get('weights') or (0.0,)))
         gamma, gamma_reason = float(sel.gamma), (
-            f'{_folds(present, policy.folds)}-fold CV on the bank: {100 * sel.cv_accuracy:.1f} %')
-        heldout = sel.heldout_scores
+            f'{sel.folds_used}-fold CV on the bank: {100 * sel.cv_accuracy:.1f} %')
+        new_head = fit_head(z_view, compact, len(present), sel.gamma, sel.alpha, sel.lda_alpha,
+                            sel.fusion_weight, sel.temperature)
+        meta['head'] = {**meta.get('head', {}), **sel.head_meta()}
     elif want_cv:
         gamma_reason = 'kept (CV needs two classes)'
-    elif policy.gamma == 'auto':
-        gamma_reason = 'kept (auto: bank too large or a class too small for CV)'
-    calib = meta.get('unknown_calibration')
-    recal = policy.calibration == 'recalibrate' or (
-        policy.calibration == 'auto' and heldout is not None)
-    cal_reason = 'kept' if calib else 'none'
-    if recal and len(present) >= 2:
-        if heldout is None:   # scores at the kept gamma, held out
-            heldout = select(view.features, labels, bank.num_classes, (gamma,), ('none',),
-                             (None,), _folds(present, policy.folds)).heldout_scores
-        rate = float((calib or {}).get('false_reject_rate', 0.05))
-        meta['unknown_calibration'] = calibrate_unknown(heldout, rate)
-        cal_reason = f'recalibrated ({100 * rate:g} % false rejects on held-out folds)'
-    meta['refit'] = {'version': version, 'gamma': gamma, 'gamma_reason': gamma_reason,
+        new_head = head
+    else:
+        if policy.gamma == 'auto':
+            gamma_reason = 'kept (auto: bank too large or a class too small for CV)'
+        new_head = head
+        if head is not None and head.lda_coef is not None:
+            # Closed-form LDA refit with the CV-chosen shrinkage kept.
+            z_view = vote_to_z(view.features, head)
+            fit = CovarianceFit.fit(z_view, compact, len(present))
+            coef, bias = fit.lda(float(meta.get('head', {}).get('lda_alpha') or 0.0))
+            new_head = replace(head, lda_coef=coef, lda_bias=bias)
+    if new_head is not None:
+        new_head = _expand_lda(replace(new_head, gamma=gamma), present, bank.num_classes)
+        if new_head.is_plain_vote and new_head.temperature == 1.0:
+            new_head = None
+    rewhiten = sel is not None and (
+        (head is not None and head.whiten is not None)
+        or (new_head is not None and new_head.whiten is not None))
+    features = bank.features
+    if rewhiten:
+        z_all = vote_to_z(bank.features, head)
+        features = z_all if new_head is None else new_head.vote_space(z_all)
+    cal_reason = _recalibrate(meta, bank, view, compact, present, gamma, new_head, sel, policy,
+                              folds, z_view)
+    meta['refit'] = {'version': int(meta.get('bank_version', 0)), 'gamma': gamma,
+                     'gamma_reason': gamma_reason,
+                     'head': ('none (plain kernel vote)' if new_head is None else
+                              'refitted in closed form' + (', knobs by CV' if sel else
+                                                           ', knobs kept')),
                      'calibration_reason': cal_reason, 'min_examples': policy.min_examples,
                      'predicted_classes': int(len(present))}
-    return replace(bank, gamma=gamma, meta=meta)
+    return replace(bank, features=features, gamma=gamma, meta=meta, head=new_head), rewhiten
+
+
+def vote_to_z(u: torch.Tensor, head: Head | None) -> torch.Tensor:
+    """Bank rows in the vote's space (N, d) -> the transformed rows z (N, d) they came from.
+
+    u = normalize(z W) with W the head's (invertible, symmetric) whitening, z unit rows, so
+    z = normalize(u W^-1) (exact up to the stored precision). Without whitening u is z.
+    """
+    if head is None or head.whiten is None:
+        return u
+    inv = torch.linalg.inv(head.whiten.double())
+    return torch.nn.functional.normalize(u.double() @ inv, dim=1).float()
+
+
+def _expand_lda(head: Head, present: np.ndarray, num_classes: int) -> Head:
+    """LDA rows fitted on the present classes -> one row per class; absent classes never win."""
+    if head.lda_coef is None or head.lda_coef.shape[0] == num_classes:
+        return head
+    coef = torch.zeros(num_classes, head.lda_coef.shape[1])
+    bias = torch.full((num_classes,), _ABSENT_BIAS)
+    idx = torch.from_numpy(present)
+    coef[idx], bias[idx] = head.lda_coef, head.lda_bias
+    return replace(head, lda_coef=coef, lda_bias=bias)
+
+
+def _recalibrate(meta: dict, bank: FeatureBank, view: FeatureBank, compact: torch.Tensor,
+                 present: np.ndarray, gamma: float, head: Head | None, sel: Any,
+                 policy: RefitPolicy, folds: int, z_view: torch.Tensor | None) -> str:
+    """Update meta's open-set calibration per policy; -> what was done."""
+    calib = meta.get('unknown_calibration')
+    recal = policy.calibration == 'recalibrate' or (policy.calibration == 'auto'
+                                                    and sel is not None)
+    if not recal or len(present) < 2:
+        return 'kept' if calib else 'none'
+    if sel is None:      # held-out scores with every knob pinned at its kept value
+        hm = meta.get('head', {})
+        z_view = vote_to_z(view.features, bank.head) if z_view is None else z_view
+        alphas = tuple({a for a in (hm.get('alpha'), hm.get('lda_alpha')) if a is not None})
+        w = float(head.fusion_weight) if head is not None else 0.0
+        sel = select(z_view, np.asarray(compact), len(present), (gamma,), ('none',), (None,),
+                     folds, alphas=alphas, weights=(w,),
+                     whiten_options=(head is not None and head.whiten is not None,))
+    rate = float((calib or {}).get('false_reject_rate', 0.05))
+    # The measure the bank already thresholds (format-1 banks: the vote share).
+    measure = calib.get('measure', 'probability') if calib else (
+        'novelty' if head is not None else 'probability')
+    if sel.heldout_novelty is not None and measure == 'novelty':
+        meta['unknown_calibration'] = calibrate_novelty(sel.heldout_novelty, rate)
+        meta['probability_calibration'] = calibrate_unknown(sel.heldout_scores, rate)
+    else:
+        meta['unknown_calibration'] = calibrate_unknown(sel.heldout_scores, rate)
+    return f'recalibrated ({100 * rate:g} % false rejects on held-out folds)'
 
 
 def near_duplicates(new: torch.Tensor, bank: FeatureBank, class_id: int,
@@ -352,6 +441,13 @@ def save_atomic(bf: BankFile, path: str | os.PathLike[str]) -> Path:
 
 
 # ------------------------------------------------------------------------------ helpers
+
+
+def _restore(bank: FeatureBank, stored: np.ndarray, moved: bool) -> BankFile:
+    """The BankFile of a refitted bank: stored values re-derived only if the rows moved."""
+    if moved:
+        stored = bank.features.numpy().astype(stored.dtype)
+    return BankFile(replace(bank, features=_from_stored(stored)), stored)
 
 
 def _from_stored(stored: np.ndarray) -> torch.Tensor:
