@@ -6,8 +6,18 @@ PY := $(VENV)/bin/python
 SHARED ?= ../shared
 MODELNET := $(SHARED)/datasets/modelnet40_1024
 STAMP := $(VENV)/.installed
+# ROS packages without a pip wheel (vision_msgs, launch_ros, ros2cli), built from ../shared/ros
+# where it exists (dev/CI machines); a ROS install has them already.
+EXTRAS_SCRIPT := $(SHARED)/ros/install-extras.sh
+EXTRAS := $(VENV)/ros_extras
+EXTRAS_STAMP := $(EXTRAS)/.built
+WITH_EXTRAS := $(if $(wildcard $(EXTRAS_SCRIPT)),$(EXTRAS_STAMP))
+# Every recipe that runs ROS code: the venv, plus the extras when they are built.
+ROS_ENV := source $(VENV)/bin/activate && if [ -f $(EXTRAS)/setup.bash ]; then \
+	export AMENT_PREFIX_PATH=$(CURDIR)/$(VENV)$${AMENT_PREFIX_PATH:+:$$AMENT_PREFIX_PATH}; \
+	source $(EXTRAS)/setup.bash; fi
 
-.PHONY: venv demo test lint bench default-bank colcon-build clean
+.PHONY: venv ros-extras demo test lint bench default-bank colcon-build clean
 
 venv: $(STAMP)
 
@@ -18,15 +28,22 @@ $(STAMP): requirements.txt requirements-dev.txt setup.py
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 
+ros-extras: $(EXTRAS_STAMP)
+
+$(EXTRAS_STAMP): $(STAMP) $(EXTRAS_SCRIPT)
+	@echo "building the ROS extras into $(EXTRAS) (~2-6 min the first time)"
+	time $(EXTRAS_SCRIPT) $(VENV) $(EXTRAS)
+	touch $@
+
 # The node with the shipped default bank, fed real held-out ModelNet40 objects.
 demo: $(STAMP)
-	$(PY) -m point_gn_ros.clients.demo
+	$(ROS_ENV) && python -m point_gn_ros.clients.demo
 
-test: $(STAMP)
-	$(PY) -m pytest -q test
+test: $(STAMP) $(WITH_EXTRAS)
+	$(ROS_ENV) && python -m pytest -q test
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check point_gn_ros test scripts
+	$(VENV)/bin/ruff check point_gn_ros test scripts launch
 
 bench: $(STAMP)
 	$(VENV)/bin/point_gn bench
@@ -37,7 +54,7 @@ default-bank: $(STAMP)
 		-o point_gn_ros/data/modelnet40_default.npz
 
 colcon-build: $(STAMP)
-	source $(VENV)/bin/activate && colcon build --base-paths . --build-base build \
+	$(ROS_ENV) && colcon build --base-paths . --build-base build \
 		--install-base install
 
 clean:

@@ -15,21 +15,24 @@ Protocol (issue 12 goal):
   (a) complete objects at a seeded random yaw, (b) one single-view scan of each (seed 7).
 Nothing here is tuned on the test split: the bank's knobs were chosen by CV on train.
 
-Run: python scripts/enroll_study.py [--bank PATH] [--json OUT]
+Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 from pathlib import Path
 import sys
 import time
 
 import numpy as np
+import torch
 
 from point_gn_ros.bank.enroll import BankFile, RefitPolicy
 from point_gn_ros.bank.live import LiveBank
+from point_gn_ros.core.config import ENCODER_VERSION
 from point_gn_ros.core.sampling import rotate_z
 from point_gn_ros.core.views import simulate_view, simulate_views
 from point_gn_ros.datasets import open_dataset
@@ -48,6 +51,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--query-views', type=int, default=20)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--json', default=None, help='write the figures here')
+    p.add_argument('--cache', default=None, metavar='DIR',
+                   help='reuse the encoded clouds (keyed by encoder configuration and seeds)')
     args = p.parse_args(argv)
 
     bf = BankFile.load(args.bank)
@@ -62,10 +67,27 @@ def main(argv: list[str] | None = None) -> int:
         return encode_clouds(clouds, encoder, batch_size=64)
 
     t0 = time.perf_counter()
-    full = [rotate_z(test[i][0], float(rng.uniform(0, 2 * np.pi))) for i in rest]
-    one_view = [simulate_view(test[i][0], np.random.default_rng([7, int(i)])).points
-                for i in rest]
-    f_full, f_view = encode(full), encode(one_view)
+    key = hashlib.sha1(repr((bf.bank.config.to_dict(), ENCODER_VERSION, args.seed,
+                             args.enroll_views, args.query_views)).encode()).hexdigest()[:16]
+    cache = Path(args.cache) / f'enroll_study_{key}.npz' if args.cache else None
+    if cache is not None and cache.is_file():
+        with np.load(cache, allow_pickle=False) as z:
+            arrays = {k: torch.from_numpy(z[k]) for k in z.files}
+    else:
+        full = [rotate_z(test[i][0], float(rng.uniform(0, 2 * np.pi))) for i in rest]
+        one_view = [simulate_view(test[i][0], np.random.default_rng([7, int(i)])).points
+                    for i in rest]
+        arrays = {'full': encode(full), 'view': encode(one_view)}
+        for c, i in chosen.items():
+            obj = test[i][0]
+            arrays[f'enroll_{c}'] = encode([v.points for v in simulate_views(
+                obj, args.enroll_views, seed=args.seed + i)])
+            arrays[f'query_{c}'] = encode([v.points for v in simulate_views(
+                obj, args.query_views, seed=args.seed + 1000 + i)])
+        if cache is not None:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(cache, **{k: v.numpy() for k, v in arrays.items()})
+    f_full, f_view = arrays['full'], arrays['view']
     truth = test.labels[rest]
     print(f'encoded {len(rest)} test objects twice in {time.perf_counter() - t0:.0f} s',
           file=sys.stderr)
@@ -80,21 +102,16 @@ def main(argv: list[str] | None = None) -> int:
     before = {'complete': accuracy(f_full, truth), 'single_view': accuracy(f_view, truth)}
     queries, query_labels, enroll_s, dups = [], [], [], 0
     for c, i in chosen.items():
-        obj = test[i][0]
         name = f'{c}_object_{i}'
-        shots = [v.points for v in simulate_views(obj, args.enroll_views, seed=args.seed + i)]
         t = time.perf_counter()
-        res = live.add(encode(shots), name, source=f'enroll_study: {args.enroll_views} views '
-                                                   f'of test object {i}')
+        res = live.add(arrays[f'enroll_{c}'], name, source=f'enroll_study: '
+                       f'{args.enroll_views} views of test object {i}')
         enroll_s.append(time.perf_counter() - t)
         dups += res.duplicate_count
         cid = live.current().class_names.index(name)
-        qs = [v.points for v in simulate_views(obj, args.query_views,
-                                               seed=args.seed + 1000 + i)]
-        queries.append(encode(qs))
-        query_labels += [cid] * len(qs)
+        queries.append(arrays[f'query_{c}'])
+        query_labels += [cid] * len(arrays[f'query_{c}'])
     snap = live.current()
-    import torch
     q_pred = snap.model.classifier.classify(torch.cat(queries)).labels
     q_true = np.asarray(query_labels)
     per_object = {snap.class_names[c]: float((q_pred[q_true == c] == c).mean())

@@ -16,6 +16,7 @@ import random
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from typing import Any
 
@@ -26,15 +27,36 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 NODE_FQN = '/point_gn_classifier'
 
-# One private DDS domain per test session, so that concurrent sessions on this machine
-# (other people's tests, the demo) never see each other's topics.
-DOMAIN_ID = int(os.environ.get('POINT_GN_TEST_DOMAIN_ID', random.randint(1, 100)))
+# The caller's ROS_DOMAIN_ID when set (whoever shares the machine chose it); else one random
+# private DDS domain per test session, so that concurrent sessions never see each other.
+DOMAIN_ID = int(os.environ.get('POINT_GN_TEST_DOMAIN_ID') or os.environ.get('ROS_DOMAIN_ID')
+                or random.randint(1, 100))
+# Node and client logs go here rather than ~/.ros/log (inherited by every node process).
+os.environ.setdefault('ROS_LOG_DIR', str(Path(tempfile.gettempdir()) / 'point_gn_test_roslog'))
 
 # A small encoder configuration: the node tests check plumbing, not accuracy, and the
 # naive encoder at 1024 points would make them minutes long.
 TEST_NUM_POINTS = 256
 TEST_K = 32
 BANK_CLASSES = ('airplane', 'bottle', 'chair', 'guitar', 'lamp', 'table')
+
+
+def require_ros_extras(module: str = 'vision_msgs.msg') -> None:
+    """Skip (fail under POINT_GN_REQUIRE_SHARED=1) when a ROS package without a wheel is absent.
+
+    vision_msgs, launch_ros and ros2cli come from a ROS install, or on dev/CI machines from
+    ../shared/ros/install-extras.sh (`make ros-extras`; `make test` sources them).
+    """
+    import importlib
+    try:
+        importlib.import_module(module)
+    except ImportError:
+        reason = (f'{module} is not importable: install ROS (ros-jazzy-vision-msgs, '
+                  'ros-jazzy-launch-ros, ros-jazzy-ros2cli) or run `make ros-extras` and source '
+                  '.venv/ros_extras/setup.bash (make test does)')
+        if os.environ.get('POINT_GN_REQUIRE_SHARED') == '1':
+            pytest.fail(reason + ' (POINT_GN_REQUIRE_SHARED=1)')
+        pytest.skip(reason)
 
 
 def pick(split: str, classes: Sequence[str], per_class: int, offset: int = 0
@@ -211,6 +233,17 @@ class Harness:
         if not self.spin_until(ready, timeout):
             raise AssertionError(f'node did not subscribe within {timeout} s:\n'
                                  + (node.log() if node else ''))
+
+    def call(self, srv_type: Any, name: str, request: Any, timeout: float = 30.0) -> Any:
+        """Call service `name` and return its response (AssertionError on timeout)."""
+        client = self.node.create_client(srv_type, name)
+        try:
+            assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
+            future = client.call_async(request)
+            assert self.spin_until(future.done, timeout), f'{name}: no response'
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
 
     def close(self) -> None:
         self.executor.shutdown()

@@ -94,3 +94,104 @@ def test_installed_classifier_node_answers_over_dds(colcon_install: Path, small_
         harness.close()
         if node.proc.poll() is None:
             node.stop()
+
+
+def _node_processes_with(marker: str) -> list[int]:
+    """PIDs of processes whose command line mentions `marker` (a unique temp path)."""
+    pids = []
+    for proc in Path('/proc').iterdir():
+        if proc.name.isdigit():
+            try:
+                if marker.encode() in (proc / 'cmdline').read_bytes():
+                    pids.append(int(proc.name))
+            except OSError:
+                pass
+    return pids
+
+
+def test_ros2_launch_and_cli_control(colcon_install: Path, small_bank_path: Path,
+                                     tmp_path: Path) -> None:
+    """`ros2 launch` starts the installed node; `ros2 param set` and `ros2 lifecycle set` work.
+
+    Answers arrive as vision_msgs/Detection3DArray on ~/detections.
+    """
+    import signal
+
+    from conftest import load_modelnet_subset
+    from node_testing import (DOMAIN_ID, Harness, reliable_qos, require_ros_extras, stamp,
+                              stamp_key, to_sensor_frame, cloud_msg)
+    require_ros_extras('launch_ros')
+    require_ros_extras('ros2lifecycle')
+    require_ros_extras('vision_msgs.msg')
+    from sensor_msgs.msg import PointCloud2
+    from vision_msgs.msg import Detection3DArray
+
+    bank = tmp_path / 'launch_bank.npz'          # a unique path: finds the node's process
+    shutil.copy(small_bank_path, bank)
+    env = dict(_installed_env(colcon_install), ROS_DOMAIN_ID=str(DOMAIN_ID),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    log = open(tmp_path / 'launch.log', 'wb')  # noqa: SIM115 - closed below
+    launch = subprocess.Popen(
+        ['ros2', 'launch', 'point_gn_ros', 'classifier.launch.py', 'namespace:=robot',
+         f'bank_path:={bank}', 'input_topics:=[launch_objects]'],
+        stdout=log, stderr=subprocess.STDOUT, env=env)
+    node = '/robot/point_gn_classifier'
+    harness = Harness('launch_test')
+
+    def cli(*args: str) -> str:
+        out = subprocess.run(['ros2', *args, '--no-daemon', '--spin-time', '5'], env=env,
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stdout + out.stderr
+        return out.stdout
+
+    def text() -> str:
+        return (tmp_path / 'launch.log').read_text(errors='replace')
+
+    try:
+        dets = harness.collect(Detection3DArray, f'{node}/detections', reliable_qos(50))
+        pub = harness.node.create_publisher(PointCloud2, '/robot/launch_objects',
+                                            reliable_qos(10))
+        assert harness.spin_until(lambda: pub.get_subscription_count() > 0
+                                  or launch.poll() is not None, 120.0), text()
+        assert launch.poll() is None, text()
+        harness.spin_for(0.5)
+        xyz, _, _ = load_modelnet_subset('test', 1)
+        rng = np.random.default_rng(0)
+        clouds = [to_sensor_frame(c, rng) for c in xyz[:3]]
+
+        def answered(i: int, timeout: float = 30.0) -> bool:
+            pub.publish(cloud_msg(clouds[i], 'lidar', stamp(200 + i)))
+            return harness.spin_until(
+                lambda: any(stamp_key(d.header) == (200 + i, 0) for d in dets), timeout)
+
+        def results(i: int) -> int:
+            return next(len(d.detections[0].results) for d in dets
+                        if stamp_key(d.header) == (200 + i, 0))
+
+        assert answered(0), text()
+        assert results(0) == 5
+        assert 'successful' in cli('param', 'set', node, 'top_k', '3').lower()
+        assert answered(1) and results(1) == 3
+        assert 'active' in cli('lifecycle', 'get', node)
+        cli('lifecycle', 'set', node, 'deactivate')
+        assert 'inactive' in cli('lifecycle', 'get', node)
+        assert not answered(2, 3.0)
+        cli('lifecycle', 'set', node, 'activate')
+        harness.spin_until(lambda: pub.get_subscription_count() > 0, 30.0)
+        harness.spin_for(0.5)
+        assert answered(2), text()
+    finally:
+        harness.close()
+        launch.send_signal(signal.SIGINT)
+        try:
+            rc = launch.wait(30)
+        except subprocess.TimeoutExpired:
+            launch.kill()
+            rc = launch.wait(5)
+        log.close()
+        leftovers = _node_processes_with(str(bank))
+        for pid in leftovers:
+            os.kill(pid, signal.SIGKILL)
+    assert rc == 0, text()
+    assert not leftovers, 'the node outlived ros2 launch'
+    assert 'Traceback' not in text(), text()

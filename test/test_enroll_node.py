@@ -218,8 +218,12 @@ def test_enroll_predict_save_restart_forget(harness: Harness, tiny_bank: Path, t
         c = Client(harness, node)
         assert c.wait_classes(lambda names: len(names) == 7)[-1] == NEW
         again = c.classify(sofa[1] + others, 300)
+        # Labels bit for bit (the bank file is exact: test_enroll.py); scores may differ in
+        # the last float bits because micro-batches group the clouds differently.
         for a, b in zip(taught, again, strict=True):
-            assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True)), (a, b)
+            assert np.array_equal(a[0], b[0]), (a, b)
+            np.testing.assert_allclose(a[1], b[1], rtol=1e-5, atol=1e-12)
+            np.testing.assert_allclose(a[2], b[2], rtol=1e-5, atol=1e-12)
         # Forget it: gone from the class list and from the answers.
         c.set_param('enroll_class', NEW)
         ok, text = c.call('forget')

@@ -42,13 +42,18 @@ def test_optical_roundtrip_is_exact() -> None:
     assert back.dtype == np.float32 and np.array_equal(back, z_up)
 
 
-def test_queue_resize_drops_oldest_and_counts() -> None:
+def test_queue_resize_shrinks_as_it_drains_without_dropping() -> None:
     q: WorkQueue[int] = WorkQueue(2, 5)
     for i in range(5):
         q.put(0, i)
     q.put(1, 10)
     q.resize(2)
-    assert q.maxlen == 2 and q.depths() == [2, 1] and q.dropped() == [3, 0]
-    assert [it.payload for it in q.take(10) if it.topic_index == 0] == [3, 4]
+    assert q.maxlen == 2 and q.depths() == [5, 1] and q.dropped() == [0, 0]
+    assert q.put(0, 5)                                  # full: one oldest out, one in
+    assert q.depths() == [5, 1] and q.dropped() == [1, 0]
+    assert [it.payload for it in q.take(4) if it.topic_index == 0] == [1, 2, 3]
+    assert q.depths() == [2, 0]                         # drained to the new bound ...
+    assert q.put(0, 6) and q.depths() == [2, 0]         # ... and held there
+    assert not q.put(1, 11)
     with pytest.raises(ValueError):
         q.resize(0)

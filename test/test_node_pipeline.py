@@ -15,7 +15,7 @@ import pytest
 
 from node_testing import (BANK_CLASSES, NODE_FQN, REPO, TEST_NUM_POINTS, Harness, NodeProcess,
                           assert_same_labels, cloud_msg, harness, latched_qos, latest_diagnostics,
-                          pick, sensor_qos, stamp, stamp_key, tiny_bank, to_sensor_frame)
+                          pick, stamp, stamp_key, tiny_bank, to_sensor_frame)
 
 __all__ = ['harness', 'tiny_bank']  # fixtures, imported so that pytest finds them
 
@@ -46,7 +46,7 @@ def io(harness: Harness, node: NodeProcess) -> dict:
 
     from node_testing import reliable_qos
 
-    pubs = [harness.node.create_publisher(PointCloud2, t, sensor_qos()) for t in TOPICS]
+    pubs = [harness.node.create_publisher(PointCloud2, t, reliable_qos(20)) for t in TOPICS]
     out = {
         'pubs': pubs,
         'cls': harness.collect(PointCloud2, f'{NODE_FQN}/classifications', reliable_qos(100)),
@@ -222,10 +222,10 @@ def test_diagnostics(harness: Harness, io: dict) -> None:
     assert topic['topic_index'] == '1' and int(topic['processed']) >= 7
 
 
-def test_parameters_are_described_and_read_only(harness: Harness, io: dict) -> None:
+def test_parameters_are_described_and_read_only_unless_live(harness: Harness, io: dict) -> None:
     from rcl_interfaces.srv import DescribeParameters, GetParameters
 
-    from point_gn_ros.node.classifier_node import PARAMETERS
+    from point_gn_ros.node.params import LIVE, PARAMETERS
 
     def call(srv_type, name: str, request):  # noqa: ANN001, ANN202
         client = harness.node.create_client(srv_type, f'{NODE_FQN}/{name}')
@@ -239,7 +239,8 @@ def test_parameters_are_described_and_read_only(harness: Harness, io: dict) -> N
                      DescribeParameters.Request(names=names)).descriptors
     by_name = {d.name: d for d in described}
     assert set(by_name) == set(names)
-    assert all(d.read_only and d.description for d in described)
+    assert all(d.description for d in described)
+    assert {d.name for d in described if not d.read_only} == LIVE | {'class_names'}
     assert by_name['top_k'].integer_range[0].from_value == 1
     assert by_name['unknown_threshold'].floating_point_range
     values = call(GetParameters, 'get_parameters', GetParameters.Request(

@@ -52,3 +52,26 @@ def test_bad_start_fails_fast_with_one_clear_line(tiny_bank: Path, tmp_path: Pat
         for proc in procs.values():
             proc.stop(timeout=5)
     assert time.monotonic() - t0 < START_TIMEOUT_S
+
+
+def test_managed_configure_failure_is_reported_and_the_node_stays(tmp_path: Path) -> None:
+    """autostart:=false: a bad bank fails the configure transition with the reason."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+
+    from node_testing import NODE_FQN, Harness
+
+    proc = NodeProcess({'bank_path': str(tmp_path / 'nope.npz'), 'autostart': False},
+                       tmp_path / 'managed.log')
+    harness = Harness('managed_failure_test')
+    try:
+        req = ChangeState.Request(transition=Transition(label='configure'))
+        assert not harness.call(ChangeState, f'{NODE_FQN}/change_state', req, 60.0).success
+        state = harness.call(GetState, f'{NODE_FQN}/get_state', GetState.Request())
+        assert state.current_state.label == 'unconfigured'
+        assert proc.proc.poll() is None
+        assert 'configure failed: ' in proc.log() and 'bank file not found' in proc.log()
+    finally:
+        harness.close()
+        assert proc.stop() == 0
+    assert '[FATAL]' not in proc.log() and 'Traceback' not in proc.log()

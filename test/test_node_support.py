@@ -129,8 +129,43 @@ def test_config_yaml_lists_every_parameter_with_its_default() -> None:
 
     from point_gn_ros.node.classifier_node import PARAMETERS
     params = yaml.safe_load((REPO / 'config' / 'classifier.yaml').read_text())
-    values = params['point_gn_classifier']['ros__parameters']
+    values = params['/**']['ros__parameters']
     assert set(values) == set(PARAMETERS)
     for name, (default, description, _) in PARAMETERS.items():
         assert values[name] == default, name
         assert description
+
+
+def test_marker_lifetime() -> None:
+    from std_msgs.msg import Header
+
+    box = object_box(np.zeros((4, 3), np.float32), 'c', 0, 0.5)
+    markers = MarkerTracker(['t']).build(0, Header(), [box], lifetime_s=1.25).markers
+    assert [(m.lifetime.sec, m.lifetime.nanosec) for m in markers] == [(1, 250_000_000)] * 2
+    forever = MarkerTracker(['t']).build(0, Header(), [box]).markers
+    assert all(m.lifetime.sec == 0 and m.lifetime.nanosec == 0 for m in forever)
+
+
+def test_stamp_latency_only_with_comparable_clocks() -> None:
+    from point_gn_ros.node.classifier_node import stamp_latency_s
+
+    assert stamp_latency_s(5_000_000_000, 4_000_000_000) == pytest.approx(1.0)
+    assert stamp_latency_s(0, 4_000_000_000) is None       # sim time before the first /clock
+    assert stamp_latency_s(5_000_000_000, 0) is None       # unstamped message
+
+
+def test_parameter_validation_and_closest_names() -> None:
+    from point_gn_ros.node.params import (LIVE, PARAMETERS, NodeConfigError, closest_parameter,
+                                          settings_from_values)
+
+    values = {name: default for name, (default, _, _) in PARAMETERS.items()}
+    s = settings_from_values(values)
+    assert s.qos_reliability == 'reliable' and s.up_axis == 'auto' and s.autostart
+    with pytest.raises(NodeConfigError, match='up_axis'):
+        settings_from_values(values | {'up_axis': 'up'})
+    with pytest.raises(NodeConfigError, match='repeats'):
+        settings_from_values(values | {'input_topics': ['a', 'a']})
+    assert closest_parameter('unkown_threshold', PARAMETERS) == 'unknown_threshold'
+    assert closest_parameter('input_topic', PARAMETERS) == 'input_topics'
+    assert closest_parameter('zzz', PARAMETERS) is None
+    assert LIVE <= set(PARAMETERS)

@@ -107,8 +107,8 @@ def bench_node(rates: Sequence[float] = (10, 30, 100), duration_s: float = 10.0,
     client = None
     rows: list[dict[str, Any]] = []
     try:
-        # Best effort, like a sensor driver: what the node does by default.
-        client = Client(domain_id, TOPIC, reliable=False, name='point_gn_bench')
+        # Reliable: what the node subscribes with by default (qos_reliability).
+        client = Client(domain_id, TOPIC, reliable=True, name='point_gn_bench')
         if not client.wait_ready(node, start_timeout_s):
             raise RuntimeError(f'classifier node did not start (exit code {node.proc.poll()}):'
                                f'\n{node.log_tail()}')

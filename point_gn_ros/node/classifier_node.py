@@ -1,27 +1,39 @@
-"""ROS 2 node: classify segmented object point clouds with Point-GN.
+"""ROS 2 managed (lifecycle) node: classify segmented object point clouds with Point-GN.
 
 Subscribes to one or more sensor_msgs/PointCloud2 topics (each message one object,
 or several objects split by an integer segment field) and publishes
 
+* ``~/detections`` (vision_msgs/Detection3DArray, when vision_msgs is installed): input
+  header; per object its box in the input frame, top-k (class name, score), id = segment id;
+* ``~/label_info`` (vision_msgs/LabelInfo, transient local): class id -> name, threshold;
 * ``~/classifications`` (sensor_msgs/PointCloud2): one point per object, at its
   centroid in the input frame, with class_id, score, top-k ids/scores,
   segment_id and topic_index; same header as the input message;
 * ``~/markers`` (visualization_msgs/MarkerArray): a "label score" text and a
-  bounding box per object;
+  bounding box per object, with a lifetime;
 * ``~/class_names`` (std_msgs/String, latched): one class name per line,
   line index = class_id;
 * ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) once a second.
 
+Lifecycle: configure loads and validates the bank and starts the worker; activate creates
+the subscriptions and enables the (lifecycle) publishers; deactivate removes the
+subscriptions; cleanup stops the worker and frees the bank. `autostart` (default true) walks
+to active at start, so the node runs as a plain one. Extra interfaces plug in as
+`rclpy.lifecycle.ManagedEntity`s (``ClassifierNode(extensions=...)``): they get the same
+transitions after the node's own work; `replace_recognizer()` swaps the bank between batches.
+
 Threading: subscription callbacks only enqueue (bounded per topic, dropping the
-oldest); one worker thread decodes, resamples, encodes and classifies in
-micro-batches across topics, so the executor stays responsive however slow the
-encoder is.
+oldest); one worker thread (node/pipeline.py, ROS-free) decodes, resamples, encodes and
+classifies in micro-batches across topics, so the executor stays responsive however slow
+the encoder is.
 """
 
 from __future__ import annotations
 
 import point_gn_ros.node._quiet_interrupt  # noqa: F401 - first: before the slow imports
 
+from collections.abc import Callable, Sequence
+import dataclasses
 import signal
 import sys
 import threading
@@ -32,20 +44,26 @@ import numpy as np
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.lifecycle import LifecycleNode, LifecycleState, ManagedEntity, TransitionCallbackReturn
 import rclpy.logging
-from rclpy.node import Node
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 from point_gn_ros.errors import BankError, PointGNError
 from point_gn_ros.node.diagnostics import DiagnosticsBuilder
+from point_gn_ros.node.frames import UpConvention
 from point_gn_ros.node.markers import MarkerTracker, object_box
-from point_gn_ros.node.params import PARAMETERS, NodeConfigError, Settings, settings_from_values
+from point_gn_ros.node.outputs import (class_name, make_detections, make_label_info,
+                                       vision_msgs_available)
+from point_gn_ros.node.params import (LIVE, PARAMETERS, NodeConfigError, Settings,
+                                      closest_parameter, resolve_unknown_threshold,
+                                      settings_from_values)
 from point_gn_ros.node.pipeline import Answer, Pipeline
 from point_gn_ros.node.rate_limited_log import RateLimitedLogger
 from point_gn_ros.node.stats import NodeStats
@@ -56,61 +74,127 @@ NODE_NAME = 'point_gn_classifier'
 WARN_PERIOD_S = 5.0
 # How long shutdown waits for the worker to finish the batch it is classifying.
 WORKER_JOIN_TIMEOUT_S = 10.0
+# Counted when a message taken before deactivate is finished while inactive (not published).
+REJECT_INACTIVE = 'node inactive'
+# Overrides that are not ours but legitimate (rclpy's own, QoS overrides).
+_FOREIGN_PARAMETERS = ('use_sim_time', 'start_type_description_service', 'class_names')
+
+Extension = Callable[['ClassifierNode'], ManagedEntity]
 
 
-class ClassifierNode(Node):
-    """Point-GN classifier node; see the module docstring for topics and threading."""
+def stamp_latency_s(now_ns: int, stamp_ns: int) -> float | None:
+    """Header stamp -> now, both on the node clock; None when either is unset (0).
 
-    def __init__(self, **kwargs: Any) -> None:
+    The node clock is the ROS clock: system time normally, /clock under use_sim_time, so a
+    replayed bag's stamps are compared with replayed time, never with the wall clock.
+    """
+    if now_ns <= 0 or stamp_ns <= 0:
+        return None
+    return (now_ns - stamp_ns) * 1e-9
+
+
+class ClassifierNode(LifecycleNode):
+    """Point-GN classifier node; see the module docstring for topics, lifecycle, threading."""
+
+    def __init__(self, *, extensions: Sequence[Extension] = (), **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        self.settings = self._declare_parameters()
-        s = self.settings
-        self._configure_torch()
-
-        t0 = time.perf_counter()
-        self.recognizer = self._make_recognizer()
-        bank = self.recognizer.bank
-        if bank.config.num_points != s.num_points:
-            raise BankError(f'{bank.path}: bank was built for num_points='
-                            f'{bank.config.num_points}, node parameter num_points='
-                            f'{s.num_points}')
-        # Read-only and taken from the bank: an override on the command line is ignored.
-        self.declare_parameter(
-            'class_names', list(self.recognizer.class_names),
-            ParameterDescriptor(type=ParameterType.PARAMETER_STRING_ARRAY, read_only=True,
-                                description='Class names of the bank (index = class_id).'),
-            ignore_override=True)
-        self.get_logger().info(f'bank {bank.path}: {bank.summary()} '
-                               f'(loaded in {time.perf_counter() - t0:.1f} s)')
-        # Pay compile / first-call costs before any message can arrive.
-        warm_s = self.recognizer.warmup()
-        self.get_logger().info(f'warm-up done in {warm_s:.1f} s: {self.recognizer.encoder!r}, '
-                               f'device {s.device}, {s.torch_threads} thread(s)')
-
-        out_qos = QoSProfile(depth=max(10, s.qos_depth), reliability=ReliabilityPolicy.RELIABLE,
-                             history=HistoryPolicy.KEEP_LAST)
-        self._pub_cls = self.create_publisher(PointCloud2, '~/classifications', out_qos)
-        self._pub_markers = self.create_publisher(MarkerArray, '~/markers', out_qos)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._pub_names = self.create_publisher(String, '~/class_names', latched)
-        self._publish_class_names(self._enrollment.live.current())
-        self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-
-        self._queue: WorkQueue[PointCloud2] = WorkQueue(len(s.input_topics), s.queue_size)
-        self._stats = NodeStats(len(s.input_topics))
-        self._markers = MarkerTracker(s.input_topics)
-        self._warn = RateLimitedLogger(self.get_logger().warning, WARN_PERIOD_S)
-        self._diagnostics = DiagnosticsBuilder()
+        self._declare_parameters()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.settings: Settings | None = None
+        self.recognizer: Any = None
+        self.class_names: list[str] = []
+        self.config_error: Exception | None = None
+        self.has_vision_msgs = vision_msgs_available()
+        self._active = False
+        self._setting_class_names = False
+        self._subs: list[Any] = []
+        self._pipeline: Pipeline | None = None
+        self._worker: threading.Thread | None = None
         self._stop = threading.Event()
-        self._pipeline = Pipeline(self.recognizer, s, self._stats, self._warn, self._stop)
-        self._enrollment.attach(self._pipeline, list(s.input_topics), self._publish_class_names,
-                                self._warn, s.min_points)
-        self._worker = threading.Thread(
-            target=self._pipeline.serve, args=(self._queue, self._publish, self.context.ok),
-            name='point_gn_worker', daemon=True)
-        self._worker.start()
+        self._timer: Any = None
+        self._lifecycle_pubs: list[Any] = []
+        self._diagnostic_sources: list[Callable[[str], Any]] = []
+        for make in extensions:
+            self.add_managed_entity(make(self))
+        self._warn_unknown_overrides()          # after the extensions declared theirs
 
+    @property
+    def autostart(self) -> bool:
+        return bool(self.get_parameter('autostart').value)
+
+    # ------------------------------------------------------------------ parameters
+
+    def _declare_parameters(self) -> None:
+        for name, (default, description, extra) in PARAMETERS.items():
+            desc = ParameterDescriptor(description=description, read_only=name not in LIVE,
+                                       **extra)
+            if isinstance(default, list):   # an explicit type, so that [] would still be valid
+                desc.type = ParameterType.PARAMETER_STRING_ARRAY
+            self.declare_parameter(name, default, desc)
+
+    def _warn_unknown_overrides(self) -> None:
+        """A misspelt `-p name:=...` or YAML key would be silently ignored: say so."""
+        for name in sorted(self._parameter_overrides):
+            if (name in PARAMETERS or name in _FOREIGN_PARAMETERS or self.has_parameter(name)
+                    or name.startswith('qos_overrides.')):
+                continue
+            hint = closest_parameter(name, PARAMETERS)
+            self.get_logger().warning(
+                f"unknown parameter '{name}' ignored"
+                + (f"; did you mean '{hint}'?" if hint else
+                   f" (parameters: {', '.join(PARAMETERS)})"))
+
+    def _values(self) -> dict[str, Any]:
+        return {name: self.get_parameter(name).value for name in PARAMETERS}
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        """Validate and apply live parameter changes; refuse what cannot change now."""
+        changes = {}
+        for p in params:
+            if p.name == 'class_names' and not self._setting_class_names:
+                return SetParametersResult(successful=False,
+                                           reason='class_names comes from the bank (read-only)')
+            if p.name in LIVE:
+                changes[p.name] = p.value
+        if not changes or self.settings is None:
+            return SetParametersResult(successful=True)   # read at configure
+        try:
+            settings = dataclasses.replace(self.settings, **changes)
+            resolve_unknown_threshold(self.recognizer.bank, settings.unknown_threshold)
+        except (NodeConfigError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self.settings = settings
+        self._queue.resize(settings.queue_size)
+        self._pipeline.update(settings)
+        self.get_logger().info('parameters changed: ' + ', '.join(
+            f'{k}={v!r}' for k, v in changes.items()))
+        if 'unknown_threshold' in changes:
+            self._publish_labels()
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Validate parameters, load the bank, create publishers, start the worker."""
+        self.config_error = None
+        try:
+            self._configure()
+        except (PointGNError, ParameterException) as exc:
+            self.config_error = exc
+            if not self.autostart:        # autostart: main() says it once, as FATAL
+                self.get_logger().error(f'configure failed: {exc}')
+            self._teardown()
+            return TransitionCallbackReturn.FAILURE
+        except Exception as exc:          # a bug: main() re-raises it with its traceback
+            self.config_error = exc
+            self.get_logger().error(f'configure failed: {type(exc).__name__}: {exc}')
+            self._teardown()
+            return TransitionCallbackReturn.ERROR
+        return super().on_configure(state)
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Subscribe to the input topics and enable the publishers."""
+        s = self.settings
         in_qos = QoSProfile(
             depth=s.qos_depth, history=HistoryPolicy.KEEP_LAST,
             reliability=(ReliabilityPolicy.BEST_EFFORT if s.qos_reliability == 'best_effort'
@@ -123,46 +207,118 @@ class ClassifierNode(Node):
         self._pipeline.topic_names = [sub.topic_name or topic
                                       for sub, topic in zip(self._subs, s.input_topics,
                                                             strict=True)]
-        self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
-        resolved = ', '.join(sub.topic_name for sub in self._subs)
+        now = time.monotonic()
+        self._activated_at = now
+        self._last_msg = [now] * len(self._subs)
+        self._last_publisher = [now] * len(self._subs)
+        ret = super().on_activate(state)          # enables the lifecycle publishers
+        self._active = True
+        self._publish_labels()
+        outputs = [self._pub_cls.topic_name, self._pub_markers.topic_name]
+        if self._pub_det is not None:
+            outputs.insert(0, self._pub_det.topic_name)
         self.get_logger().info(
-            f'classifying {resolved} ({s.qos_reliability}, depth {s.qos_depth}, segment field '
-            f"{s.segment_field or 'none'}) -> {self._pub_cls.topic_name}, "
-            f'{self._pub_markers.topic_name}')
+            f"classifying {', '.join(self._pipeline.topic_names)} ({s.qos_reliability}, "
+            f"depth {s.qos_depth}, segment field {s.segment_field or 'none'}, up axis "
+            f"{s.up_axis}) -> {', '.join(outputs)}")
+        return ret
 
-    # ------------------------------------------------------------------ parameters
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Stop answering: no subscriptions, publishers disabled (the bank stays loaded)."""
+        self._active = False
+        self._destroy_subscriptions()
+        self.get_logger().info('deactivated: not answering')
+        return super().on_deactivate(state)
 
-    def _declare_parameters(self) -> Settings:
-        values: dict[str, Any] = {}
-        for name, (default, description, extra) in PARAMETERS.items():
-            desc = ParameterDescriptor(description=description, read_only=True, **extra)
-            if isinstance(default, list):   # an explicit type, so that [] would still be valid
-                desc.type = ParameterType.PARAMETER_STRING_ARRAY
-            values[name] = self.declare_parameter(name, default, desc).value
-        return settings_from_values(values)
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Stop the worker, destroy the publishers, free the bank."""
+        ret = super().on_cleanup(state)
+        self._teardown()
+        self.get_logger().info('cleaned up: bank released')
+        return ret
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        ret = super().on_shutdown(state)
+        self._active = False
+        self._destroy_subscriptions()
+        self._teardown()
+        return ret
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._active = False
+        self._destroy_subscriptions()
+        self._teardown()
+        return super().on_error(state)
+
+    def _configure(self) -> None:
+        s = self.settings = settings_from_values(self._values())
+        self._configure_torch()
+        t0 = time.perf_counter()
+        recognizer = self._make_recognizer()
+        bank = recognizer.bank
+        self.get_logger().info(f'bank {bank.path}: {bank.summary()} '
+                               f'(loaded in {time.perf_counter() - t0:.1f} s)')
+        # Pay compile / first-call costs before any message can arrive.
+        warm_s = recognizer.warmup()
+        self.get_logger().info(f'warm-up done in {warm_s:.1f} s: {recognizer.encoder!r}, '
+                               f'device {s.device}, {s.torch_threads} thread(s)')
+        self._set_recognizer(recognizer)
+
+        out_qos = QoSProfile(depth=max(10, s.qos_depth), reliability=ReliabilityPolicy.RELIABLE,
+                             history=HistoryPolicy.KEEP_LAST)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._pub_cls = self._lifecycle_pub(PointCloud2, '~/classifications', out_qos)
+        self._pub_markers = self._lifecycle_pub(MarkerArray, '~/markers', out_qos)
+        self._pub_names = self._lifecycle_pub(String, '~/class_names', latched)
+        self._pub_det = self._pub_labels = None
+        if self.has_vision_msgs:
+            from vision_msgs.msg import Detection3DArray, LabelInfo
+            self._pub_det = self._lifecycle_pub(Detection3DArray, '~/detections', out_qos)
+            self._pub_labels = self._lifecycle_pub(LabelInfo, '~/label_info', latched)
+        else:
+            self.get_logger().warning('vision_msgs is not installed: no ~/detections or '
+                                      '~/label_info, only ~/classifications (PointCloud2)')
+        self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+
+        self._queue: WorkQueue[PointCloud2] = WorkQueue(len(s.input_topics), s.queue_size)
+        self._stats = NodeStats(len(s.input_topics))
+        self._markers = MarkerTracker(s.input_topics)
+        self._warn = RateLimitedLogger(self.get_logger().warning, WARN_PERIOD_S)
+        self._diagnostics = DiagnosticsBuilder()
+        self._stop = threading.Event()
+        self._pipeline = Pipeline(self.recognizer, s, self._stats, self._warn, self._stop)
+        # A tf2 lookup (input frame -> gravity-aligned frame) can replace the convention here.
+        self._pipeline.frame_rotation = UpConvention(s.up_axis)
+        self._worker = threading.Thread(
+            target=self._pipeline.serve, args=(self._queue, self._publish, self.context.ok),
+            name='point_gn_worker', daemon=True)
+        self._worker.start()
+        self._timer = self.create_timer(1.0, self._publish_diagnostics)
+
+    def _lifecycle_pub(self, msg_type: Any, topic: str, qos: QoSProfile) -> Any:
+        pub = self.create_lifecycle_publisher(msg_type, topic, qos)
+        self._lifecycle_pubs.append(pub)
+        return pub
 
     def _make_recognizer(self) -> Any:
-        from point_gn_ros.node.enrollment import Enrollment
+        from point_gn_ros.bank.store import FeatureBank
         from point_gn_ros.recognizer import Recognizer, make_encoder
 
         s = self.settings
-        encoder: list[Any] = []
-
-        def make_model(bank: Any) -> Recognizer:
-            """A recognizer for one bank version; every version shares one encoder."""
-            if not encoder:
-                # The fast encoder runs its own worker pool (default: every CPU); it gets
-                # the same budget as torch, for the same reason.
-                encoder.append(make_encoder(bank.config, s.device, threads=s.torch_threads))
-            return Recognizer(bank, s.device, s.resample, s.top_k,
-                              s.unknown_threshold or None, encoder=encoder[0])
-
+        bank = FeatureBank.load(s.bank_path or None)
+        if bank.config.num_points != s.num_points:
+            raise BankError(f'{bank.path}: bank was built for num_points='
+                            f'{bank.config.num_points}, node parameter num_points='
+                            f'{s.num_points}')
+        # The fast encoder runs its own worker pool (default: every CPU); it gets the
+        # same budget as torch, for the same reason.
+        encoder = make_encoder(bank.config, s.device, threads=s.torch_threads)
         try:
-            # Loads the bank; every later version comes from live enrollment.
-            self._enrollment = Enrollment(self, s.bank_path or None, make_model)
+            return Recognizer(bank, s.device, s.resample, s.top_k,
+                              s.unknown_threshold or None, encoder=encoder)
         except ValueError as exc:       # e.g. unknown_threshold < 0 without a calibration
             raise NodeConfigError(str(exc)) from None
-        return self._enrollment.recognizer
 
     def _configure_torch(self) -> None:
         import torch
@@ -172,11 +328,86 @@ class ClassifierNode(Node):
         except RuntimeError:
             pass                               # already fixed (torch allows one call)
 
+    def _set_recognizer(self, recognizer: Any) -> None:
+        """Adopt a recognizer: class names (parameter and latched topics) follow its bank."""
+        self.recognizer = recognizer
+        self.class_names = list(recognizer.class_names)
+        self._setting_class_names = True
+        try:
+            if self.has_parameter('class_names'):
+                self.set_parameters([Parameter('class_names', Parameter.Type.STRING_ARRAY,
+                                               self.class_names)])
+            else:
+                # Taken from the bank: an override on the command line is ignored.
+                self.declare_parameter(
+                    'class_names', self.class_names,
+                    ParameterDescriptor(type=ParameterType.PARAMETER_STRING_ARRAY,
+                                        description='Class names of the bank (index = '
+                                                    'class_id); set by the node.'),
+                    ignore_override=True)
+        finally:
+            self._setting_class_names = False
+
+    def add_diagnostic_source(self, source: Callable[[str], Any]) -> None:
+        """source(node_name) -> diagnostic_msgs/DiagnosticStatus, added to every report."""
+        self._diagnostic_sources.append(source)
+
+    def replace_recognizer(self, recognizer: Any) -> None:
+        """Swap in another recognizer (e.g. a re-built bank); takes effect between batches.
+
+        Raises NodeConfigError when the node is not configured or the bank does not fit the
+        node's num_points / unknown_threshold.
+        """
+        s = self.settings
+        if s is None or self._pipeline is None:
+            raise NodeConfigError('the node is not configured')
+        if recognizer.bank.config.num_points != s.num_points:
+            raise NodeConfigError(f'bank num_points={recognizer.bank.config.num_points}, node '
+                                  f'num_points={s.num_points}')
+        resolve_unknown_threshold(recognizer.bank, s.unknown_threshold)
+        self._pipeline.update(recognizer=recognizer)
+        self._set_recognizer(recognizer)
+        if self._active:
+            self._publish_labels()
+
+    def _publish_labels(self) -> None:
+        """The latched class list: ~/class_names and ~/label_info."""
+        if not self._active:
+            return
+        self._pub_names.publish(String(data='\n'.join(self.class_names)))
+        if self._pub_labels is not None:
+            threshold = resolve_unknown_threshold(self.recognizer.bank,
+                                                  self.settings.unknown_threshold)
+            self._pub_labels.publish(make_label_info(self.class_names, threshold,
+                                                     self.get_clock().now().to_msg()))
+
+    def _destroy_subscriptions(self) -> None:
+        for sub in self._subs:
+            self.destroy_subscription(sub)
+        self._subs = []
+
+    def _teardown(self) -> None:
+        """Undo configure (any part of it); safe to call twice."""
+        self._stop_worker()
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        for pub in self._lifecycle_pubs:
+            self.destroy_lifecycle_publisher(pub)
+        self._lifecycle_pubs = []
+        if getattr(self, '_pub_diag', None) is not None:
+            self.destroy_publisher(self._pub_diag)
+            self._pub_diag = None
+        self._pipeline = None
+        self.recognizer = None          # the bank's tensors go with it
+        self.settings = None
+
     # ------------------------------------------------------------------ input
 
     def _on_cloud(self, topic_index: int, msg: PointCloud2) -> None:
         """Subscription callback: enqueue with the receipt time, nothing else."""
         self._stats.on_received(topic_index)
+        self._last_msg[topic_index] = time.monotonic()
         self._queue.put(topic_index, msg)
 
     # ------------------------------------------------------------------ output
@@ -185,40 +416,64 @@ class ClassifierNode(Node):
         """Publish one message's answer (worker thread)."""
         from point_gn_ros.pointcloud2 import make_classifications
         job = answer.job
-        header = job.item.payload.header
         ti = job.item.topic_index
+        if not self._active:       # taken before deactivate: counted, not answered
+            self._stats.on_rejected(REJECT_INACTIVE)
+            return
+        header = job.item.payload.header
+        s = self.settings
+        # The names of the recognizer that produced this answer (the worker swaps it only
+        # between batches; self.class_names may already be a newer bank's).
+        names = self._pipeline.class_names
         out = make_classifications(header, answer.centroids, answer.labels, answer.scores,
                                    answer.topk_ids, answer.topk_scores,
                                    np.asarray(job.segment_ids, dtype=np.int64), ti)
         self._pub_cls.publish(out)
+        if self._pub_det is not None and self._pub_det.get_subscription_count():
+            self._pub_det.publish(make_detections(header, answer, names))
         if self._pub_markers.get_subscription_count():   # nobody watching: skip the work
-            boxes = [object_box(c, self._label_name(int(lbl)), int(lbl), float(sc))
+            boxes = [object_box(c, class_name(names, int(lbl)), int(lbl), float(sc))
                      for c, lbl, sc in zip(job.clouds, answer.labels, answer.scores,
                                            strict=True)]
-            self._pub_markers.publish(self._markers.build(ti, header, boxes))
+            self._pub_markers.publish(self._markers.build(ti, header, boxes,
+                                                          s.marker_lifetime_s))
         stamp_ns = header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
-        # Header stamps are compared with the wall clock (sensor drivers stamp in system time).
-        stamp_lat = (time.time_ns() - stamp_ns) * 1e-9 if stamp_ns > 0 else None
+        stamp_lat = stamp_latency_s(self.get_clock().now().nanoseconds, stamp_ns)
         self._stats.on_published(ti, len(job.clouds), time.monotonic() - job.item.receipt_time,
                                  stamp_lat)
 
-    def _label_name(self, class_id: int) -> str:
-        names = self._pipeline.class_names          # the version that made this answer
-        return names[class_id] if 0 <= class_id < len(names) else 'unknown'
-
-    def _publish_class_names(self, snap: Any) -> None:
-        """(Re)publish the class list of a bank version (latched; after every change)."""
-        self._pub_names.publish(String(data='\n'.join(snap.class_names)))
-
     # ------------------------------------------------------------------ diagnostics
 
+    def _input_problems(self) -> list[str]:
+        """Per input topic: '' or why it is suspicious (no publisher / no message for N s)."""
+        s = self.settings
+        if not self._active or s.input_timeout_s <= 0:
+            return [''] * len(self._subs)
+        now, out = time.monotonic(), []
+        for i, sub in enumerate(self._subs):
+            if sub.get_publisher_count() > 0:
+                self._last_publisher[i] = now
+            if now - self._last_publisher[i] > s.input_timeout_s:
+                out.append(f'no publisher on {sub.topic_name} for '
+                           f'{now - self._last_publisher[i]:.0f} s')
+            elif now - self._last_msg[i] > s.input_timeout_s:
+                out.append(f'no message on {sub.topic_name} for '
+                           f'{now - self._last_msg[i]:.0f} s')
+            else:
+                out.append('')
+        return out
+
     def _publish_diagnostics(self) -> None:
+        if self._pipeline is None:
+            return
         snap = self._stats.snapshot(self._queue.dropped(), self._queue.depths())
         arr = self._diagnostics.build(
             self.get_fully_qualified_name(), snap, self.settings, self._pipeline.topic_names,
-            self._worker.is_alive(), self._pipeline.recognizer.bank,
-            self._pipeline.recognizer.classifier.unknown_threshold)
-        arr.status.append(self._enrollment.diagnostic_status(self.get_fully_qualified_name()))
+            self._worker is not None and self._worker.is_alive(), self.recognizer.bank,
+            self.recognizer.classifier.unknown_threshold, self._input_problems(),
+            'active' if self._active else 'inactive')
+        arr.status += [source(self.get_fully_qualified_name())
+                       for source in self._diagnostic_sources]
         arr.header.stamp = self.get_clock().now().to_msg()
         self._pub_diag.publish(arr)
 
@@ -226,25 +481,33 @@ class ClassifierNode(Node):
 
     def destroy_node(self) -> None:
         """Stop and join the worker before the publishers it uses go away."""
+        self._active = False
         self._stop_worker()
         super().destroy_node()
 
     def _stop_worker(self) -> None:
-        stop = getattr(self, '_stop', None)
-        if stop is None:
-            return                     # construction failed before the worker existed
-        stop.set()
+        worker, self._worker = self._worker, None
+        if worker is None:
+            return                     # not configured
+        self._stop.set()
         self._queue.close()
-        self._worker.join(WORKER_JOIN_TIMEOUT_S)
-        self._enrollment.close()
+        worker.join(WORKER_JOIN_TIMEOUT_S)
         # After Ctrl-C the context is already shut down and the node logger could not
         # publish to /rosout any more; a child logger only writes to the console.
         log = (self.get_logger() if self.context.ok()
                else rclpy.logging.get_logger(f'{self.get_name()}.shutdown'))
-        if self._worker.is_alive():
+        if worker.is_alive():
             log.warning(f'worker thread did not stop within {WORKER_JOIN_TIMEOUT_S:g} s')
         else:
-            log.info('worker stopped, shutting down')
+            log.info('worker stopped')
+
+
+def autostart(node: ClassifierNode) -> None:
+    """Configure and activate; raises the configure error (PointGNError: a user's mistake)."""
+    if node.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+        raise node.config_error or NodeConfigError('configure failed')
+    if node.trigger_activate() != TransitionCallbackReturn.SUCCESS:
+        raise NodeConfigError('activate failed')
 
 
 def main(args: list[str] | None = None) -> int:
@@ -254,7 +517,12 @@ def main(args: list[str] | None = None) -> int:
     node: ClassifierNode | None = None
     code = 0
     try:
-        node = ClassifierNode()
+        from point_gn_ros.node.enrollment import Enrollment
+        node = ClassifierNode(extensions=[Enrollment])
+        if node.autostart:
+            autostart(node)
+        else:
+            node.get_logger().info('waiting for a lifecycle manager (autostart is false)')
         # Two threads: the enrollment services (own callback group) may wait for a save or
         # a refit without holding up the input callbacks.
         executor = MultiThreadedExecutor(num_threads=2)
@@ -281,4 +549,5 @@ if __name__ == '__main__':
     sys.exit(main(sys.argv))
 
 
-__all__ = ['ClassifierNode', 'NodeConfigError', 'PARAMETERS', 'main']
+__all__ = ['ClassifierNode', 'Extension', 'NodeConfigError', 'PARAMETERS', 'autostart', 'main',
+           'stamp_latency_s']

@@ -25,8 +25,14 @@ class DiagnosticsBuilder:
 
     def build(self, name: str, snap: StatsSnapshot, settings: Settings,
               topic_names: Sequence[str], worker_alive: bool, bank: Any,
-              unknown_threshold: float | None) -> DiagnosticArray:
-        """DiagnosticArray (header unset) for node `name` (fully qualified)."""
+              unknown_threshold: float | None, input_problems: Sequence[str] = (),
+              state: str = 'active') -> DiagnosticArray:
+        """DiagnosticArray (header unset) for node `name` (fully qualified).
+
+        input_problems: per topic '' or why it is suspicious (no publisher / no message for
+        a while: WARN); state: the lifecycle state, reported as is.
+        """
+        input_problems = list(input_problems) or [''] * len(topic_names)
         s = settings
         drops, rejects = sum(snap.dropped), sum(snap.rejected.values())
         new_drops = drops - self._last[0]
@@ -40,6 +46,7 @@ class DiagnosticsBuilder:
             problems.append(f'{new_drops} message(s) dropped (queue full)')
         if new_rejects:
             problems.append(f'{new_rejects} message(s) rejected')
+        problems += [p for p in input_problems if p]
         if problems:
             level, message = DiagnosticStatus.WARN, '; '.join(problems)
         if not worker_alive:
@@ -50,6 +57,7 @@ class DiagnosticsBuilder:
         pipeline = DiagnosticStatus(level=level, name=f'{name}: pipeline', message=message,
                                     hardware_id=s.device)
         pipeline.values = key_values({
+            'state': state,
             'input_rate_hz': f'{snap.input_rate_hz:.2f}',
             'processed_rate_hz': f'{snap.processed_rate_hz:.2f}',
             'objects_rate_hz': f'{snap.objects_rate_hz:.2f}',
@@ -73,9 +81,10 @@ class DiagnosticsBuilder:
         statuses = [pipeline]
         for i, topic in enumerate(topic_names):
             full = snap.queue_depths[i] >= s.queue_size
-            st = DiagnosticStatus(level=DiagnosticStatus.WARN if full else DiagnosticStatus.OK,
+            trouble = '; '.join(p for p in (input_problems[i], 'queue full' if full else '') if p)
+            st = DiagnosticStatus(level=DiagnosticStatus.WARN if trouble else DiagnosticStatus.OK,
                                   name=f'{name}: input {topic}', hardware_id=s.device,
-                                  message='queue full' if full else 'ok')
+                                  message=trouble or 'ok')
             st.values = key_values({
                 'topic_index': i, 'input_rate_hz': f'{snap.per_topic_input_hz[i]:.2f}',
                 'received': snap.received[i], 'processed': snap.processed[i],

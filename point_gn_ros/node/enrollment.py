@@ -26,17 +26,17 @@ worker between micro-batches (node/enroll_engine.py).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Hashable
 import threading
 import time
 from typing import Any
 
 import numpy as np
+import torch
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.node import Node
+from rclpy.lifecycle import ManagedEntity, TransitionCallbackReturn
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -78,53 +78,58 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
 }
 
 
-class Enrollment:
-    """Owns the live bank of a classifier node and its enrollment interfaces.
+class Enrollment(ManagedEntity):
+    """Live enrollment for a ClassifierNode: `ClassifierNode(extensions=[Enrollment])`.
 
-    Two steps, because the node needs the first recognizer before its worker exists:
-    `Enrollment(node, bank_path, make_model)` declares the parameters and loads the bank
-    (`.recognizer` is version 0's model); `attach(...)` creates the topics and services and
-    hooks into the pipeline's worker.
+    Constructed with the node (declares the parameters, adds the `<node>: enrollment`
+    diagnostics); on configure (after the node loaded its bank and started its worker) it
+    wraps that bank in a LiveBank and hooks the worker; on activate it creates the topics
+    and services, on deactivate it removes them; cleanup releases the bank. Every new
+    version reaches the node through `node.replace_recognizer` (swap between micro-batches,
+    class names and label info republished).
     """
 
-    def __init__(self, node: Node, bank_path: str | None,
-                 make_model: Callable[[Any], Any]) -> None:
+    def __init__(self, node: Any) -> None:
         self.node = node
         self.values = {name: node.declare_parameter(
             name, default, ParameterDescriptor(description=text,
                                                read_only=name not in _WRITABLE, **extra)).value
             for name, (default, text, extra) in ENROLL_PARAMETERS.items()}
-        gamma = self.values['enroll_refit_gamma']
-        if gamma not in ('auto', 'keep', 'cv'):
-            raise PointGNError(f'parameter enroll_refit_gamma={gamma!r} must be one of auto, '
-                               'keep, cv')
-        policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'])
-        self.live = LiveBank(BankFile.load(bank_path), make_model, policy)
+        self.live: LiveBank | None = None
         self.engine: EnrollEngine | None = None
         self._pipeline: Any = None
-        self._input_topics: list[str] = []
+        self._subs: list[Any] = []
+        self._services: list[Any] = []
+        node.add_diagnostic_source(self.diagnostic_status)
 
-    @property
-    def recognizer(self) -> Any:
-        return self.live.current().model
+    # ------------------------------------------------------------------ lifecycle
 
-    def attach(self, pipeline: Any, input_topics: list[str],
-               on_classes_changed: Callable[[Snapshot], None],
-               warn: Callable[[Hashable, str], object], min_points: int) -> None:
-        """Create topics and services; hook the worker (before it takes its first batch).
-
-        pipeline: node/pipeline.py Pipeline; input_topics: resolved names, index = topic
-        index; on_classes_changed(snapshot): republish class names / label info.
-        """
+    def on_configure(self, state: Any) -> TransitionCallbackReturn:
         node, log = self.node, self.node.get_logger()
-        self._pipeline, self._input_topics = pipeline, list(input_topics)
-        self._on_classes_changed = on_classes_changed
+        gamma = self.values['enroll_refit_gamma']
+        if gamma not in ('auto', 'keep', 'cv'):
+            log.error(f'parameter enroll_refit_gamma={gamma!r} must be one of auto, keep, cv')
+            return TransitionCallbackReturn.FAILURE
+        policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'])
+        try:
+            self.live = LiveBank(_bank_file(node.recognizer.bank), self._make_model, policy)
+            node.replace_recognizer(self.live.current().model)
+        except (PointGNError, ValueError) as exc:
+            log.error(f'enrollment: {exc}')
+            self.live = None
+            return TransitionCallbackReturn.FAILURE
+        # The node's worker (node/pipeline.py) calls these between and inside micro-batches.
+        self._pipeline = node._pipeline
         self.engine = EnrollEngine(
-            self.live, self._swap, log.info, warn, chunk=pipeline.settings.max_batch,
+            self.live, self._swap, log.info, node._warn, chunk=node.settings.max_batch,
             max_pending=self.values['enroll_max_pending'],
-            capture_max=self.values['capture_max'], min_points=min_points)
-        pipeline.observe = self._observe
-        pipeline.between_batches = self._between_batches
+            capture_max=self.values['capture_max'], min_points=node.settings.min_points)
+        self._pipeline.observe = self._observe
+        self._pipeline.between_batches = self._between_batches
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: Any) -> TransitionCallbackReturn:
+        node = self.node
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
         self._subs = [node.create_subscription(PointCloud2, '~/enroll_cloud',
@@ -134,8 +139,8 @@ class Enrollment:
             self._subs += [
                 node.create_subscription(Detection3DArray, '~/enroll', self._on_detections, qos),
                 node.create_subscription(PointCloud2, '~/enroll_scene', self._on_scene, qos)]
-        # Services may wait for a save or a refit: their own group, so that with a
-        # multi-threaded executor they never hold up the input callbacks.
+        # Services may wait for a save or a refit: their own group, so that with the
+        # node's multi-threaded executor they never hold up the input callbacks.
         group = MutuallyExclusiveCallbackGroup()
         self._services = [
             node.create_service(Trigger, f'~/{name}', handler, callback_group=group)
@@ -145,10 +150,48 @@ class Enrollment:
         snap = self.live.current()
         route = ('~/enroll (Detection3DArray) + ~/enroll_scene (PointCloud2), '
                  if Detection3DArray is not None else '')
-        log.info(f'enrollment: {route}~/enroll_cloud (PointCloud2 + enroll_class), services '
-                 f'start_capture, stop_capture, forget, save_bank; bank v{snap.version}, '
-                 f'{len(predictable(snap.bank, self.live.policy.min_examples))} of '
-                 f'{len(snap.class_names)} classes predicted')
+        node.get_logger().info(
+            f'enrollment: {route}~/enroll_cloud (PointCloud2 + enroll_class), services '
+            f'start_capture, stop_capture, forget, save_bank; bank v{snap.version}, '
+            f'{len(predictable(snap.bank, self.live.policy.min_examples))} of '
+            f'{len(snap.class_names)} classes predicted')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: Any) -> TransitionCallbackReturn:
+        self._destroy_interfaces()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: Any) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: Any) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: Any) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _destroy_interfaces(self) -> None:
+        for sub in self._subs:
+            self.node.destroy_subscription(sub)
+        for srv in self._services:
+            self.node.destroy_service(srv)
+        self._subs, self._services = [], []
+
+    def _release(self) -> None:
+        self._destroy_interfaces()
+        if self.engine is not None:
+            self.engine.close()
+        self.engine = self.live = self._pipeline = None
+
+    def _make_model(self, bank: Any) -> Any:
+        """A recognizer for one bank version, sharing the node's encoder."""
+        from point_gn_ros.recognizer import Recognizer
+        s, enc = self.node.settings, self.node.recognizer.encoder
+        return Recognizer(bank, s.device, s.resample, s.top_k, s.unknown_threshold or None,
+                          encoder=enc)
 
     # ------------------------------------------------------------------ worker hooks
 
@@ -166,8 +209,7 @@ class Enrollment:
 
     def _swap(self, snap: Snapshot, result: EnrollResult) -> None:
         """Committer thread: the worker uses `snap` from its next micro-batch on."""
-        self._pipeline.update(recognizer=snap.model)
-        self._on_classes_changed(snap)
+        self.node.replace_recognizer(snap.model)
 
     # ------------------------------------------------------------------ topics
 
@@ -225,11 +267,12 @@ class Enrollment:
         topic = self._param('capture_topic')
         topics = None
         if topic:
-            matches = [i for i, t in enumerate(self._input_topics)
+            names = self._pipeline.topic_names
+            matches = [i for i, t in enumerate(names)
                        if t == topic or t.rsplit('/', 1)[-1] == topic.rsplit('/', 1)[-1]]
             if not matches:
                 return _answer(response, False, f'capture_topic {topic!r} is not an input '
-                                                f'topic ({", ".join(self._input_topics)})')
+                                                f'topic ({", ".join(names)})')
             topics = frozenset(matches)
         return _answer(response, *self.engine.start_capture(self._param('enroll_class'),
                                                             topics))
@@ -253,6 +296,9 @@ class Enrollment:
 
     def diagnostic_status(self, node_name: str) -> DiagnosticStatus:
         """`<node>: enrollment` status: bank version, class counts, enrollment counters."""
+        if self.live is None:
+            return DiagnosticStatus(level=DiagnosticStatus.OK, name=f'{node_name}: enrollment',
+                                    message='not configured')
         values = self.diagnostic_values()
         eng = self.engine
         level, message = DiagnosticStatus.OK, f'bank v{values["bank_version"]}'
@@ -282,9 +328,6 @@ class Enrollment:
         out |= {f'count.{name}': n for name, n in counts.items()}
         return out
 
-    def close(self) -> None:
-        if self.engine is not None:
-            self.engine.close()
 
 
 class StampPairing:
@@ -345,6 +388,21 @@ def _quat_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
         [1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
         [s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w)],
         [s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y)]])
+
+
+def _bank_file(bank: Any) -> BankFile:
+    """The node's loaded bank with the exact values its file stores (see BankFile)."""
+    if bank.path is not None:
+        try:
+            with np.load(bank.path, allow_pickle=False) as z:
+                stored = z['features']
+            if stored.shape == tuple(bank.features.shape) and torch.equal(
+                    torch.nn.functional.normalize(
+                        torch.from_numpy(stored.astype(np.float32)), dim=1), bank.features):
+                return BankFile(bank, stored)
+        except (OSError, KeyError, ValueError):
+            pass                 # the file changed or went away since the node loaded it
+    return BankFile.of(bank)
 
 
 def _answer(response: Any, ok: bool, message: str) -> Any:

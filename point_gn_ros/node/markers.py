@@ -74,10 +74,19 @@ class MarkerTracker:
         base = self._ns[topic_index]
         return f'{base}/labels', f'{base}/boxes'
 
-    def build(self, topic_index: int, header: Any, boxes: Sequence[ObjectBox]) -> Any:
-        """visualization_msgs/MarkerArray for one answered message (same header)."""
+    def build(self, topic_index: int, header: Any, boxes: Sequence[ObjectBox],
+              lifetime_s: float = 0.0) -> Any:
+        """visualization_msgs/MarkerArray for one answered message (same header).
+
+        lifetime_s: how long RViz shows them unless replaced (0 = until replaced), so that
+        objects vanish when the node stops answering.
+        """
+        from builtin_interfaces.msg import Duration
         from geometry_msgs.msg import Point
         from visualization_msgs.msg import Marker, MarkerArray
+
+        ns = int(round(max(lifetime_s, 0.0) * 1e9))
+        lifetime = Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
         text_ns, box_ns = self.namespaces(topic_index)
         out = MarkerArray()
@@ -95,6 +104,7 @@ class MarkerTracker:
             text.scale.z = TEXT_HEIGHT
             text.color.r, text.color.g, text.color.b, text.color.a = 1.0, 1.0, 1.0, 1.0
             text.text = f'{b.label} {b.score:.2f}'
+            text.lifetime = lifetime
             box = Marker()
             box.header = header
             box.ns, box.id = box_ns, i
@@ -103,6 +113,7 @@ class MarkerTracker:
             box.scale.x = BOX_LINE_WIDTH
             box.color.r, box.color.g, box.color.b, box.color.a = float(r), float(g), float(bl), 1.0
             box.points = [Point(x=p[0], y=p[1], z=p[2]) for p in box_line_points(b.lo, b.hi)]
+            box.lifetime = lifetime
             out.markers += [text, box]
         for i in range(len(boxes), self._previous[topic_index]):
             for ns in (text_ns, box_ns):

@@ -12,6 +12,7 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange
 
 from point_gn_ros.errors import PointGNError
+from point_gn_ros.node.frames import UP_AXES
 
 
 class NodeConfigError(PointGNError):
@@ -20,7 +21,7 @@ class NodeConfigError(PointGNError):
 
 @dataclass(frozen=True)
 class Settings:
-    """Validated parameter values (all fixed at start)."""
+    """Validated parameter values; the LIVE ones may be replaced while the node runs."""
 
     bank_path: str
     input_topics: tuple[str, ...]
@@ -36,14 +37,23 @@ class Settings:
     qos_reliability: str
     qos_depth: int
     torch_threads: int
+    up_axis: str = 'auto'
+    input_timeout_s: float = 10.0
+    marker_lifetime_s: float = 2.0
+    autostart: bool = True
 
 
 def _int_range(lo: int, hi: int) -> list[IntegerRange]:
     return [IntegerRange(from_value=lo, to_value=hi, step=1)]
 
 
-# name -> (default, description, extra ParameterDescriptor kwargs). Every one is read-only:
-# the pipeline (bank, encoder, queues, subscriptions) is built once at start.
+def _float_range(lo: float, hi: float) -> list[FloatingPointRange]:
+    return [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]
+
+
+# name -> (default, description, extra ParameterDescriptor kwargs). Those in LIVE can be set
+# while the node runs; the others are read-only: they shape what configure builds (bank,
+# encoder, subscriptions, QoS).
 PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     'bank_path': ('', "Feature bank (.npz); '' = the ModelNet40 bank shipped with the package.",
                   {}),
@@ -63,24 +73,40 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
               {'integer_range': _int_range(1, 100)}),
     'unknown_threshold': (0.0, 'Top-1 scores below it are labelled unknown (class_id -1); '
                                "0 = off, < 0 = the bank's calibrated threshold.",
-                          {'floating_point_range': [FloatingPointRange(
-                              from_value=-1.0, to_value=1.0, step=0.0)]}),
+                          {'floating_point_range': _float_range(-1.0, 1.0)}),
     'max_batch': (32, 'Most objects encoded in one micro-batch (across topics).',
                   {'integer_range': _int_range(1, 1024)}),
     'queue_size': (8, 'Messages waiting per input topic; when full the oldest is dropped.',
                    {'integer_range': _int_range(1, 10_000)}),
-    'qos_reliability': ('best_effort', "Input QoS: 'best_effort' (sensor data profile) or "
-                                       "'reliable'.",
+    'qos_reliability': ('reliable', "Input QoS reliability: 'reliable' (no object lost in "
+                                    "transport) or 'best_effort' (objects > ~600 KB can be "
+                                    'lost to fragmentation; docs/NODE.md).',
                         {'additional_constraints': "one of 'best_effort', 'reliable'"}),
     'qos_depth': (5, 'Input (and output) QoS history depth.',
                   {'integer_range': _int_range(1, 1000)}),
     'torch_threads': (2, 'Torch intra-op threads and fast-encoder worker threads; bounded on '
                          'purpose so that they do not starve the executor and DDS threads.',
                       {'integer_range': _int_range(1, 256)}),
+    'up_axis': ('auto', "Which axis of the input frame points up; objects are turned z-up "
+                        "before classification. 'auto' = -y for frames named *_optical_frame "
+                        "(REP 103), else z; or one of z, -z, y, -y, x, -x for every frame.",
+                {'additional_constraints': "one of 'auto', 'z', '-z', 'y', '-y', 'x', '-x'"}),
+    'input_timeout_s': (10.0, 'Diagnostics go WARN when an input topic has had no publisher or '
+                              'no message for this long (s); 0 = never.',
+                        {'floating_point_range': _float_range(0.0, 86400.0)}),
+    'marker_lifetime_s': (2.0, 'Lifetime of the RViz markers (s), so that objects vanish when '
+                               'answers stop; 0 = until replaced.',
+                          {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'autostart': (True, 'Walk the lifecycle to active at start (configure + activate), as a '
+                        'plain node; false = wait for a lifecycle manager.', {}),
 }
 
+# Parameters that take effect while the node runs (validated, applied between batches).
+LIVE = frozenset({'top_k', 'unknown_threshold', 'queue_size', 'marker_lifetime_s',
+                  'input_timeout_s'})
+
 CHOICES = {'resample': ('fps', 'random'), 'device': ('cpu', 'cuda'),
-           'qos_reliability': ('best_effort', 'reliable')}
+           'qos_reliability': ('reliable', 'best_effort'), 'up_axis': UP_AXES}
 
 
 def settings_from_values(values: dict[str, Any]) -> Settings:
@@ -120,3 +146,10 @@ def resolve_unknown_threshold(bank: Any, value: float) -> float | None:
         raise NodeConfigError(f'unknown_threshold={value:g} asks for the calibrated threshold, '
                               f'but {bank.path} holds no calibration')
     return float(calib['threshold'])
+
+
+def closest_parameter(name: str, known: Any) -> str | None:
+    """The known parameter name closest to a misspelt one (difflib), or None."""
+    import difflib
+    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return close[0] if close else None

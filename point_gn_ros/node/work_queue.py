@@ -69,15 +69,15 @@ class WorkQueue(Generic[T]):
         return dropped
 
     def resize(self, maxlen: int) -> None:
-        """New per-topic bound; queues above it drop their oldest messages (counted)."""
+        """New per-topic bound; the change itself drops nothing.
+
+        A longer queue shrinks to the bound as the worker takes from it (each put still
+        pushes out one oldest message), so every drop is still counted by put().
+        """
         if maxlen < 1:
             raise ValueError(f'maxlen must be >= 1, got {maxlen}')
         with self._cond:
             self._maxlen = maxlen
-            for i, q in enumerate(self._queues):
-                while len(q) > maxlen:
-                    q.popleft()
-                    self._dropped[i] += 1
 
     def take(self, max_items: int, timeout: float | None = None) -> list[QueueItem[T]]:
         """Up to max_items messages, taken round-robin across topics, oldest first per topic.
