@@ -103,7 +103,12 @@ class EnrollEngine:
             if self._pending + len(clouds) > self.max_pending:
                 pending = self._pending
             else:
-                self._requests.append(_Request(name, list(clouds), source))
+                last = self._requests[-1] if self._requests else None
+                if last is not None and last.class_name == name and last.source == source:
+                    # Examples streaming in (one per message): one enrollment, one version.
+                    last.clouds.extend(clouds)
+                else:
+                    self._requests.append(_Request(name, list(clouds), source))
                 self._pending += len(clouds)
                 return True, f'{len(clouds)} example(s) of {name!r} queued'
         return self._refuse(len(clouds), f'{pending} examples already waiting (max '
@@ -161,17 +166,19 @@ class EnrollEngine:
             if not self._requests:
                 return False
             req = self._requests[0]
-        todo = req.clouds[req.encoded:req.encoded + self.chunk]
+            todo = req.clouds[req.encoded:req.encoded + self.chunk]
         try:
             req.feats.append(recognizer.encode(todo))
         except Exception as exc:  # noqa: BLE001 - one bad example costs its request only
             self._drop_head(req, f'encoding failed: {type(exc).__name__}: {exc}')
             return bool(self._requests)
-        req.encoded += len(todo)
-        if req.encoded >= len(req.clouds):
-            with self._lock:
+        with self._lock:          # submit() may still be extending this request
+            req.encoded += len(todo)
+            done = req.encoded >= len(req.clouds)
+            if done:
                 self._requests.popleft()
                 self._pending -= len(req.clouds)
+        if done:
             self._committer.submit(self._commit, req)
         return bool(self._requests)
 

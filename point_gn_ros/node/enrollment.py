@@ -246,8 +246,7 @@ class Enrollment(ManagedEntity):
                 self.engine._refuse(unlabelled, 'detection without results[0].hypothesis.'
                                                 'class_id')
             for label, clouds in per_class.items():
-                self.engine.submit(label, clouds, f'~/enroll ({len(clouds)} of '
-                                                  f'{len(dets.detections)} detections)')
+                self.engine.submit(label, clouds, '~/enroll')
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         from point_gn_ros.pointcloud2 import decode_xyz
