@@ -1,4 +1,4 @@
-"""`point_gn` command line: bank, eval, fewshot, bench, bag, replay.
+"""`point_gn` command line: bank, eval, fewshot, classify, bench, bag, replay.
 
 Each sub-command lives in its own module exposing `register(subparsers)`; the
 module is imported only when listed here, and its heavy imports happen inside
@@ -16,6 +16,7 @@ COMMAND_MODULES = (
     'point_gn_ros.commands.bank_cmd',
     'point_gn_ros.commands.enroll_cmd',      # bank add|remove: after bank_cmd
     'point_gn_ros.commands.eval_cmd',
+    'point_gn_ros.commands.classify_cmd',
     'point_gn_ros.commands.bench_cmd',
     'point_gn_ros.commands.bag_cmd',
 )

@@ -32,10 +32,15 @@ def test_demo_runs_and_stops_the_node_cleanly(tiny_bank: Path) -> None:
                           '--count', '4', '--domain-id', str(DOMAIN_ID), '--timeout', '60'],
                          capture_output=True, text=True, timeout=150, cwd=REPO)
     assert out.returncode == 0, out.stdout + out.stderr
-    rows = [ln for ln in out.stdout.splitlines() if re.match(r'\s+\d+\s+\w+\s+\w+\s+\d\.\d\d', ln)]
-    assert len(rows) == 4, out.stdout
-    assert re.search(r'accuracy \d+/4 = [\d.]+ %, latency p50 [\d.]+ ms, p99 [\d.]+ ms',
-                     out.stdout), out.stdout
+    # Each object whole, then as a single-view scan with fewer points.
+    rows = [ln.split() for ln in out.stdout.splitlines()
+            if re.match(r'\s+\d+\s+(complete|scan)\s+\d+\s+\w+\s+\w+\s+\d\.\d\d', ln)]
+    assert [r[1] for r in rows] == ['complete', 'scan'] * 4, out.stdout
+    assert all(int(c[2]) == 1024 and 32 <= int(s[2]) < 1024 for c, s in zip(rows[::2], rows[1::2],
+                                                                           strict=True))
+    for kind in ('complete', 'scan'):
+        assert re.search(rf'accuracy \({kind}\) \d+/4 = [\d.]+ %', out.stdout), out.stdout
+    assert re.search(r'latency p50 [\d.]+ ms, p99 [\d.]+ ms', out.stdout), out.stdout
     assert 'node stopped (exit code 0)' in out.stdout
     assert 'Traceback' not in out.stderr
 

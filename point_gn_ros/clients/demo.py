@@ -2,9 +2,11 @@
 
 Starts the node as its own process (default bank unless --bank), publishes the test
 objects shipped in point_gn_ros/data/demo_objects.npz (one per class) one at a time in a
-sensor frame (metres, translated, turned by a random yaw, a little noise), prints each
-answer (true label, prediction, score, end-to-end latency) and a summary, then stops the
-node with Ctrl-C semantics (SIGINT). Needs nothing outside the package: no ../shared, no network.
+sensor frame (metres, translated, turned by a random yaw, a little noise): each object whole,
+then as a single-view scan (only the side facing the sensor, noisy and sparser, simulated by
+core/views.py), prints each answer (true label, prediction, score, end-to-end latency) and a
+summary for both kinds, then stops the node with Ctrl-C semantics (SIGINT). Needs nothing
+outside the package: no ../shared, no network.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from point_gn_ros.clients.node_client import (DEMO_OBJECTS, Client, NodeLauncher
 
 TOPIC = 'demo_objects'
 FRAME = 'demo_sensor'
+KINDS = ('complete', 'scan')
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,6 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--no-random-yaw', dest='random_yaw', action='store_false',
                    help='keep the dataset heading (default: each object turned by a random yaw; '
                         'the shipped bank is yaw-aligned)')
+    p.add_argument('--kinds', nargs='+', choices=KINDS, default=list(KINDS),
+                   help='what to send of each object: the complete cloud, a single-view scan, '
+                        'or both (default both)')
     return p
 
 
@@ -87,16 +93,21 @@ def main(argv: list[str] | None = None) -> int:
               f'test objects on /{TOPIC} (frame {FRAME})\n', flush=True)
         names = client.class_names or []
         rng = np.random.default_rng(args.seed)
-        correct, latencies, missing = 0, [], 0
-        print(f'{"#":>4}  {"true":<12} {"predicted":<12} {"score":>5}  {"latency":>10}')
-        for i in range(count):
-            xyz = place_in_sensor_frame(objects.xyz[i], rng, yaw=float(rng.uniform(0, 2 * np.pi))
-                                        if args.random_yaw else 0.0)
+        correct = dict.fromkeys(args.kinds, 0)
+        sent_n = dict.fromkeys(args.kinds, 0)
+        latencies, missing = [], 0
+        print(f'{"#":>4}  {"kind":<8} {"points":>6}  {"true":<12} {"predicted":<12} {"score":>5}'
+              f'  {"latency":>10}')
+        for i, kind in ((i, k) for i in range(count) for k in args.kinds):
+            yaw = float(rng.uniform(0, 2 * np.pi)) if args.random_yaw else 0.0
+            xyz = place_in_sensor_frame(objects.xyz[i], rng, yaw=yaw,
+                                        single_view=kind == 'scan')
             true = objects.class_names[int(objects.labels[i])]
             key, sent = client.send(xyz, FRAME)
             if not client.spin_until(lambda k=key: k in client.answers, args.timeout, node):
                 missing += 1
-                print(f'{i + 1:>4}  {true:<12} (no answer within {args.timeout:g} s)')
+                print(f'{i + 1:>4}  {kind:<8} {len(xyz):>6}  {true:<12} '
+                      f'(no answer within {args.timeout:g} s)')
                 if not node.alive():
                     break
                 continue
@@ -107,13 +118,16 @@ def main(argv: list[str] | None = None) -> int:
             pred = names[cid] if 0 <= cid < len(names) else 'unknown'
             latency = ans.received - sent
             latencies.append(latency)
-            correct += pred == true
-            print(f'{i + 1:>4}  {true:<12} {pred:<12} {score:5.2f}  {latency * 1e3:7.1f} ms'
-                  f"  {'ok' if pred == true else 'WRONG'}", flush=True)
+            correct[kind] += pred == true
+            sent_n[kind] += 1
+            print(f'{i + 1:>4}  {kind:<8} {len(xyz):>6}  {true:<12} {pred:<12} {score:5.2f}  '
+                  f"{latency * 1e3:7.1f} ms  {'ok' if pred == true else 'WRONG'}", flush=True)
         p50, p99 = percentiles_ms(latencies)
-        answered = len(latencies)
-        print(f'\naccuracy {correct}/{answered} = {100.0 * correct / max(answered, 1):.1f} %, '
-              f'latency p50 {p50:.1f} ms, p99 {p99:.1f} ms'
+        print()
+        for kind in args.kinds:
+            print(f'accuracy ({kind}) {correct[kind]}/{sent_n[kind]} = '
+                  f'{100.0 * correct[kind] / max(sent_n[kind], 1):.1f} %')
+        print(f'latency p50 {p50:.1f} ms, p99 {p99:.1f} ms'
               + (f', {missing} unanswered' if missing else ''))
         ok = missing == 0 and node.alive()
     except KeyboardInterrupt:

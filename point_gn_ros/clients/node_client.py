@@ -45,15 +45,21 @@ def load_demo_objects(path: str | os.PathLike[str] = DEMO_OBJECTS) -> DemoObject
 
 
 def place_in_sensor_frame(xyz: np.ndarray, rng: np.random.Generator, noise: float = 0.003,
-                          yaw: float = 0.0) -> np.ndarray:
+                          yaw: float = 0.0, single_view: bool = False) -> np.ndarray:
     """A unit-sphere object as a sensor sees it: metres, `yaw` radians about z, translated.
 
+    single_view: only a simulated scan of the side facing the sensor at the origin (hidden
+    points removed, sensor noise, dropout; core/views.py), as a depth camera or lidar sees it.
     The node normalises position and scale itself; a yaw-aligned bank (the shipped one)
     also undoes the yaw, any other bank needs the dataset's orientation (yaw 0).
     """
     scale = rng.uniform(0.4, 1.0)
     offset = np.array([rng.uniform(2.0, 8.0), rng.uniform(-3.0, 3.0), rng.uniform(0.0, 1.0)],
                       dtype=np.float32)
+    if single_view:
+        from point_gn_ros.core.views import simulate_view
+        azimuth = float(np.arctan2(-offset[1], -offset[0]) - yaw)   # object frame -> sensor
+        xyz = simulate_view(xyz, rng, azimuth=azimuth).points
     out = rotate_z(xyz * scale, yaw) + offset
     out += rng.normal(0.0, noise, out.shape)
     return out.astype(np.float32)

@@ -42,6 +42,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='drop each point with probability P (default 0)')
     w.add_argument('--partial', type=float, default=1.0, metavar='SHARE',
                    help='partial view: keep SHARE of the points by a random plane cut')
+    w.add_argument('--single-view', action='store_true',
+                   help='a simulated single-view scan of each object (hidden points removed, '
+                        'sensor noise, dropout, range falloff; core/views.py); with '
+                        '--sensor-frame the scanned side faces the sensor')
     w.add_argument('--seed', type=int, default=0, help='seed of the realism transforms')
     w.set_defaults(func=_write)
 
@@ -101,7 +105,7 @@ def _write(args: argparse.Namespace) -> int:
         storage=args.storage, rate_hz=args.rate, objects_per_message=args.objects_per_message,
         topic=args.topic, limit=args.limit, frame_id=args.frame_id, seed=args.seed,
         realism=Realism(args.sensor_frame, args.noise, args.dropout, args.partial,
-                        args.max_yaw))
+                        args.max_yaw, args.single_view))
     opts.check()   # before the (slow) dataset opens
     ds = open_dataset_from_args(args)
     summary = write_bag(ds, args.output, opts, source=f'{ds.path} [{ds.split}]',

@@ -29,6 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument('--yaw-align', action='store_true',
                    help='rotate every cloud into a canonical heading about z before encoding '
                         '(yaw-invariant bank, for upright objects seen from any side)')
+    b.add_argument('--views', type=int, default=0, metavar='K',
+                   help='sensor-realistic bank: add K simulated single-view scans of every '
+                        'object (core/views.py), every entry at a random yaw; CV folds keep an '
+                        'object and its views together. Without --yaw-align this is yaw '
+                        'augmentation (no canonical frame)')
+    b.add_argument('--view-seed', type=int, default=0, help='seed of the --views scans')
     b.add_argument('--dtype', choices=('float16', 'float32'), default='float16',
                    help='stored feature precision (default float16)')
     b.add_argument('--dims', type=int, nargs='+', default=None,
@@ -74,12 +80,23 @@ def _build(args: argparse.Namespace) -> int:
         args.dtype = 'float16'
         dims = args.dims and dims or [256, 384, 512]
     print(f'{ds.format} {ds.split}: {len(ds)} objects, {len(ds.class_names)} classes')
+    groups, views_meta = None, None
+    if args.views:
+        from point_gn_ros.datasets.views import ViewsDataset
+        ds = ViewsDataset(ds, args.views, args.view_seed, include_full=True, random_yaw=True)
+        groups = ds.groups
+        views_meta = {**ds.describe(),
+                      'rotation': 'yaw_align' if args.yaw_align else 'yaw_augment'}
+        print(f'+ {args.views} simulated views per object: {len(ds)} entries '
+              f'({views_meta["rotation"]})')
     alphas = () if args.vote_only else tuple(args.alphas or DEFAULT_ALPHAS)
     bank = build_bank(ds, cfg, args.device, standardize_options=tuple(args.standardize),
                       dims_options=tuple(dims), folds=args.folds,
                       false_reject_rate=args.false_reject_rate,
                       cache_dir=Path(args.cache) if args.cache else None, alphas=alphas,
-                      weights=tuple(args.weights or DEFAULT_WEIGHTS))
+                      weights=tuple(args.weights or DEFAULT_WEIGHTS), groups=groups)
+    if views_meta is not None:
+        bank.meta['views'] = views_meta
     path = bank.save(args.output, dtype=args.dtype)
     print(f'chosen by {args.folds}-fold CV on {ds.split}:')
     print('\n'.join(describe_selection(bank.meta)))

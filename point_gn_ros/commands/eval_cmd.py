@@ -26,6 +26,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument('--random-yaw', type=int, default=None, metavar='SEED',
                    help='rotate every object by a random angle about z (seeded): how the bank '
                         'copes with objects seen from any side')
+    e.add_argument('--single-view', action='store_true',
+                   help='classify one simulated single-view scan of every object instead '
+                        '(hidden points removed, noise, dropout, random yaw; core/views.py)')
+    e.add_argument('--seed', type=int, default=0,
+                   help='seed of the --single-view scans (default 0)')
     e.add_argument('--open-set', default=None, metavar='N_OR_CLASSES',
                    help='open-set run: build BANK (or reuse it if it holds exactly these '
                         'classes) from the train split of N classes drawn with --open-set-seed '
@@ -54,6 +59,7 @@ def _eval(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.builder import encode_dataset
     from point_gn_ros.bank.classifier import Classifier
     from point_gn_ros.commands.common import open_dataset_from_args
+    from point_gn_ros.datasets.views import ViewsDataset
     from point_gn_ros.errors import DatasetError
     from point_gn_ros.evaluation.metrics import accuracy_report, format_report, plot_confusion
     from point_gn_ros.recognizer import make_encoder
@@ -66,28 +72,30 @@ def _eval(args: argparse.Namespace) -> int:
         raise DatasetError(f"{ds.path}: class names differ from the bank's "
                            f'({len(ds.class_names)} vs {len(bank.class_names)} classes)')
     enc = make_encoder(bank.config, args.device)
-    if args.random_yaw is None:
-        feats = encode_dataset(ds, enc, args.batch_size, progress=not args.json,
-                               cache_dir=Path(args.cache) if args.cache else None)
-    else:
-        from point_gn_ros.recognizer import encode_clouds
-        from point_gn_ros.core.sampling import rotate_z
-        angles = np.random.default_rng(args.random_yaw).uniform(0, 2 * np.pi, len(ds))
-        feats = encode_clouds((rotate_z(ds[i][0], angles[i]) for i in range(len(ds))), enc,
-                              batch_size=args.batch_size, total=len(ds),
-                              progress=None if args.json else 'encoding (random yaw)')
+    source = ds
+    if args.single_view:
+        # One scan per object, turned by a random yaw as well (seeded by --seed).
+        source = ViewsDataset(ds, 1, args.seed, include_full=False, random_yaw=True)
+    elif args.random_yaw is not None:
+        # The complete objects, each turned by a seeded random yaw (cached like the rest).
+        source = ViewsDataset(ds, 0, args.random_yaw, include_full=True, random_yaw=True)
+    feats = encode_dataset(source, enc, args.batch_size, progress=not args.json,
+                           cache_dir=Path(args.cache) if args.cache else None)
     clf = Classifier(bank, args.device, args.unknown_threshold, gamma=args.gamma)
     res = clf.classify(torch.as_tensor(feats), top_k=1)
     report = accuracy_report(ds.labels, res.labels, bank.class_names)
     report.update(bank=str(bank.path), dataset=str(ds.path), split=ds.split,
-                  gamma=clf.gamma, random_yaw_seed=args.random_yaw)
+                  gamma=clf.gamma, random_yaw_seed=args.random_yaw,
+                  single_view_seed=args.seed if args.single_view else None)
     if args.confusion:
         plot_confusion(report['confusion'], bank.class_names, args.confusion,
                        f'{Path(ds.path).name} [{ds.split}]: {100 * report["accuracy"]:.2f} %')
     if args.json:
         print(json.dumps({k: v for k, v in report.items() if k != 'confusion'}, indent=2))
     else:
-        print(format_report(report, f'{Path(ds.path).name} [{ds.split}] vs {bank.path.name}'))
+        what = f' single-view scans (seed {args.seed})' if args.single_view else ''
+        print(format_report(report, f'{Path(ds.path).name} [{ds.split}]{what} vs '
+                                    f'{bank.path.name}'))
     return 0
 
 

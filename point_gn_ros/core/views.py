@@ -10,8 +10,8 @@ Visibility is a splatted z-buffer, not Katz-Tal-Basri hidden point removal (that
 hull; scipy is not a dependency): every point is projected through a pinhole at the camera; the
 image is cut into cells `cell` point spacings wide; a point is visible if no point of its cell
 or the 8 cells around it lies more than `depth_tol` cell widths in front of it. Surfaces seen
-edge-on (within that tolerance of the silhouette) are kept, as a real sensor's grazing returns. Seeded and
-deterministic: the same cloud, seed and configuration give the same view on any machine.
+edge-on (within that tolerance of the silhouette) are kept, as a real sensor's grazing returns.
+Seeded and deterministic: the same cloud, seed and configuration give the same view on any machine.
 """
 
 from __future__ import annotations
@@ -20,6 +20,9 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+
+# Bump when the same seed and configuration give different views (cached features re-key).
+SIMULATOR_VERSION = 2
 
 # Cell offsets of a point's 3x3 neighbourhood in the z-buffer (the splat footprint).
 _NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
@@ -65,6 +68,9 @@ class ViewConfig:
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
 
 
+DEFAULT_VIEW_CONFIG = ViewConfig()
+
+
 @dataclass(frozen=True)
 class View:
     """One simulated scan: `points` (M, 3) float32 = input[indices] + noise (M,) int64."""
@@ -100,7 +106,8 @@ def point_spacing(xyz: np.ndarray, queries: int = 256, max_points: int = 4096) -
     ref = pts[(np.arange(min(n, max_points)) * (n / min(n, max_points))).astype(np.int64)]
     q = ref[(np.arange(min(len(ref), queries)) * (len(ref) / min(len(ref), queries)))
             .astype(np.int64)]
-    d2 = (q * q).sum(axis=1)[:, None] + (ref * ref).sum(axis=1)[None, :] - 2.0 * q @ ref.T
+    # Per coordinate, not a matmul: BLAS threads cost far more than they save at this size.
+    d2 = sum((q[:, None, j] - ref[None, :, j]) ** 2 for j in range(3))
     third = np.partition(d2, 3, axis=1)[:, 3]       # index 0 is the query point itself
     spacing = float(np.sqrt(max(float(np.median(third)), 0.0)))
     spacing *= np.sqrt(len(ref) / n)                # surface spacing ~ 1 / sqrt(density)
@@ -126,14 +133,19 @@ def visible_indices(xyz: np.ndarray, camera: np.ndarray, target: np.ndarray,
     right /= np.linalg.norm(right)
     up = np.cross(right, fwd)
     rel = pts - cam
-    depth = rel @ fwd
+
+    def dot(axis: np.ndarray) -> np.ndarray:      # rel @ axis without BLAS threads
+        return rel[:, 0] * axis[0] + rel[:, 1] * axis[1] + rel[:, 2] * axis[2]
+
+    depth = dot(fwd)
     front = depth > 1e-9 * dist
     safe = np.where(front, depth, 1.0)
-    # Image coordinates scaled to lengths at the target's distance, in cells.
+    # Image coordinates as lengths at the nearest point's depth, in cells: the closest surface
+    # is the most magnified, and its point spacing must still fill the cells.
     width = cell * spacing
-    ix = np.floor((rel @ right) / safe * dist / width).astype(np.int64)
-    iy = np.floor((rel @ up) / safe * dist / width).astype(np.int64)
-    ix, iy = ix[front], iy[front]
+    near = float(depth[front].min()) if front.any() else dist
+    ix = np.floor(dot(right) / safe * near / width).astype(np.int64)[front]
+    iy = np.floor(dot(up) / safe * near / width).astype(np.int64)[front]
     dep = depth[front]
     ox, oy = ix.min() - 1 if len(ix) else 0, iy.min() - 1 if len(iy) else 0
     span = (iy.max() - oy + 2) if len(iy) else 1
@@ -147,7 +159,8 @@ def visible_indices(xyz: np.ndarray, camera: np.ndarray, target: np.ndarray,
         pos = np.clip(np.searchsorted(cells, k), 0, len(cells) - 1)
         hit = cells[pos] == k
         nearest[hit] = np.minimum(nearest[hit], zbuf[pos[hit]])
-    seen = dep <= nearest + depth_tol * width
+    # The tolerance grows with depth like a cell's footprint on the surface (perspective).
+    seen = dep <= nearest + depth_tol * width * dep / near
     return np.flatnonzero(front)[seen].astype(np.int64)
 
 

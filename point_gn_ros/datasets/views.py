@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from point_gn_ros.core.sampling import rotate_z
-from point_gn_ros.core.views import ViewConfig, simulate_views
+from point_gn_ros.core.views import (DEFAULT_VIEW_CONFIG, SIMULATOR_VERSION, ViewConfig,
+                                     simulate_views)
 from point_gn_ros.datasets.base import Dataset
 
 
@@ -24,23 +25,32 @@ class ViewsDataset(Dataset):
     Item i is deterministic in (seed, groups[i], view_index[i]) and the view configuration.
     """
 
-    def __init__(self, base: Dataset, views: int, seed: int = 0, cfg: ViewConfig = ViewConfig(),
-                 include_full: bool = True, random_yaw: bool = False,
-                 memoize: bool = False) -> None:
+    def __init__(self, base: Dataset, views: int, seed: int = 0,
+                 cfg: ViewConfig = DEFAULT_VIEW_CONFIG, include_full: bool = True,
+                 random_yaw: bool = False,
+                 memoize: bool = False, sources: np.ndarray | None = None) -> None:
         if views < 0 or (views == 0 and not include_full):
             raise ValueError(f'views must be >= 1 (or >= 0 with include_full), got {views}')
         self.base, self.views, self.seed, self.cfg = base, views, seed, cfg
         self.include_full, self.random_yaw = include_full, random_yaw
+        # sources: (S,) int64 indices of the base objects used (default: all of them).
+        self.sources = (np.arange(len(base), dtype=np.int64) if sources is None
+                        else np.asarray(sources, dtype=np.int64))
         per = views + int(include_full)
-        self.groups = np.repeat(np.arange(len(base), dtype=np.int64), per)
+        self.groups = np.repeat(self.sources, per)
         first = -1 if include_full else 0
-        self.view_index = np.tile(np.arange(first, views, dtype=np.int64), len(base))
+        self.view_index = np.tile(np.arange(first, views, dtype=np.int64), len(self.sources))
         spec = (f'views={views},seed={seed},full={int(include_full)},'
                 f'yaw={int(random_yaw)},cfg={sorted(cfg.to_dict().items())}')
-        super().__init__(base.path, f'{base.split}+{spec}', np.repeat(base.labels, per),
+        if views:
+            spec += f',sim={SIMULATOR_VERSION}'
+        if sources is not None:
+            spec += f',sources={len(self.sources)}:{hash_seed(0, int(self.sources.sum()))}'
+        labels = np.asarray(base.labels)[self.sources]
+        super().__init__(base.path, f'{base.split}+{spec}', np.repeat(labels, per),
                          base.class_names)
         self.format = base.format
-        self.skipped = list(base.skipped)
+        self.skipped = list(getattr(base, 'skipped', []))
         self._memo: dict[int, list[np.ndarray]] | None = {} if memoize else None
         self._last: tuple[int, list[np.ndarray]] | None = None
 
@@ -49,7 +59,8 @@ class ViewsDataset(Dataset):
         return {'source_split': self.base.split, 'views_per_object': self.views,
                 'include_full': self.include_full, 'random_yaw': self.random_yaw,
                 'seed': self.seed, 'view_config': self.cfg.to_dict(),
-                'sources': int(len(self.base))}
+                'simulator_version': SIMULATOR_VERSION,
+                'sources': int(len(self.sources))}
 
     def _items_of(self, source: int) -> list[np.ndarray]:
         """All items of one source object, in item order: list of (N_j, 3) float32."""
@@ -72,7 +83,7 @@ class ViewsDataset(Dataset):
 
     def _load(self, i: int) -> np.ndarray:
         per = self.views + int(self.include_full)
-        return self._items_of(i // per)[i % per]
+        return self._items_of(int(self.sources[i // per]))[i % per]
 
 
 def hash_seed(seed: int, source: int) -> int:

@@ -1,0 +1,35 @@
+"""A sensor-realistic bank beats a complete-object bank on single-view scans (CI-sized subset)."""
+
+from conftest import ArrayDataset, load_modelnet_subset
+import numpy as np
+
+from point_gn_ros.bank.builder import build_bank
+from point_gn_ros.bank.classifier import Classifier
+from point_gn_ros.core.config import EncoderConfig
+from point_gn_ros.datasets.views import ViewsDataset
+from point_gn_ros.recognizer import encode_clouds, make_encoder
+
+
+def test_views_bank_beats_complete_bank_on_single_view_scans() -> None:
+    # 10 train objects per class; queries: one single-view scan (noise, random yaw) of each of
+    # 5 held-out test objects per class. Both banks yaw-aligned, knobs by CV on the bank.
+    train_xyz, train_y, names = load_modelnet_subset('train', 10)
+    test_xyz, test_y, _ = load_modelnet_subset('test', 5)
+    enc = make_encoder(EncoderConfig(yaw_align=True))
+    views = ViewsDataset(ArrayDataset(train_xyz, train_y, names), 2, seed=0, random_yaw=True)
+    feats = encode_clouds((views[i][0] for i in range(len(views))), enc, total=len(views))
+    full = views.view_index < 0
+    complete_bank = build_bank(ArrayDataset(train_xyz, train_y, names), encoder=enc, folds=3,
+                               feats=feats[full], progress=False)
+    views_bank = build_bank(views, encoder=enc, folds=3, feats=feats, groups=views.groups,
+                            progress=False)
+    assert views_bank.meta['selection']['cv_grouped']
+    scans = ViewsDataset(ArrayDataset(test_xyz, test_y, names), 1, seed=1, include_full=False,
+                         random_yaw=True)
+    q = encode_clouds((scans[i][0] for i in range(len(scans))), enc, total=len(scans))
+    acc = {name: float((Classifier(bank).classify(q).labels == test_y).mean())
+           for name, bank in (('complete', complete_bank), ('views', views_bank))}
+    # Measured on this subset: complete 0.140, views 0.335 (200 scans; chance 0.025); the
+    # margin asserted leaves room for noise (one scan is 0.005).
+    assert acc['views'] >= acc['complete'] + 0.10, acc
+    assert np.all(views_bank.labels.numpy() == np.repeat(train_y, 3))
