@@ -34,7 +34,7 @@ from point_gn_ros.bank.enroll import BankFile, RefitPolicy
 from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.core.config import ENCODER_VERSION
 from point_gn_ros.core.sampling import rotate_z
-from point_gn_ros.core.views import simulate_view, simulate_views
+from point_gn_ros.core.views import SIMULATOR_VERSION, simulate_view, simulate_views
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.recognizer import Recognizer, encode_clouds, make_encoder
 
@@ -67,8 +67,9 @@ def main(argv: list[str] | None = None) -> int:
         return encode_clouds(clouds, encoder, batch_size=64)
 
     t0 = time.perf_counter()
-    key = hashlib.sha1(repr((bf.bank.config.to_dict(), ENCODER_VERSION, args.seed,
-                             args.enroll_views, args.query_views)).encode()).hexdigest()[:16]
+    key = hashlib.sha1(repr((bf.bank.config.to_dict(), ENCODER_VERSION, SIMULATOR_VERSION,
+                             args.seed, args.enroll_views, args.query_views)
+                            ).encode()).hexdigest()[:16]
     cache = Path(args.cache) / f'enroll_study_{key}.npz' if args.cache else None
     if cache is not None and cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
