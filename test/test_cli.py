@@ -45,6 +45,27 @@ def test_bank_build_and_info(bank: Path, capsys: pytest.CaptureFixture) -> None:
     meta = json.loads(capsys.readouterr().out)
     assert meta['provenance']['count'] == 24 and meta['provenance']['split'] == 'train'
     assert meta['selection']['cv_folds'] == 2
+    assert meta['format_version'] == 2 and meta['head']['folds_used'] == 2
+    assert meta['unknown_calibration']['measure'] == 'novelty'
+    assert main(['bank', 'info', str(bank)]) == 0
+    out = capsys.readouterr().out
+    assert 'head: kernel vote on' in out and 'temperature' in out
+    assert 'plain kernel vote on the same folds' in out and 'novelty above' in out
+
+
+def test_eval_open_set(tree: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    # a bank of chairs and lamps (built from train), queried with all three test classes
+    out = tmp_path / 'known.npz'
+    args = ['eval', str(out), str(tree), '--split', 'test', '--open-set', 'chair,lamp',
+            '--json']
+    assert main(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report['known_classes'] == ['chair', 'lamp'] and out.is_file()
+    assert report['known_objects'] == 8 and report['unseen_objects'] == 4
+    assert 0.0 <= report['auroc_novelty'] <= 1.0
+    assert 0.0 <= report['unknown_recall_at_threshold'] <= 1.0
+    assert main(args) == 0                      # the second run reuses the bank
+    assert json.loads(capsys.readouterr().out)['auroc_novelty'] == report['auroc_novelty']
 
 
 def test_eval_json_and_confusion(bank: Path, tree: Path, tmp_path: Path,

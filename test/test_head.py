@@ -68,14 +68,15 @@ def _head_bank(per_class: int = 40, seed: int = 0) -> tuple[FeatureBank, torch.T
 def test_fused_scores_are_probabilities_and_novelty_is_a_distance() -> None:
     bank, raw = _head_bank()
     clf = Classifier(bank)
-    res = clf.classify(torch.cat([raw[:10], 5 * torch.randn(10, raw.shape[1])]), top_k=3)
+    far = 5 * torch.randn(10, raw.shape[1], generator=torch.Generator().manual_seed(1))
+    res = clf.classify(torch.cat([raw[:10], far]), top_k=3)
     p = res.probability
     assert p.shape == (20, 5) and (p >= 0).all() and (p <= 1).all()
     np.testing.assert_allclose(p.sum(1), 1, atol=1e-5)
     np.testing.assert_allclose(res.scores, p.max(1), atol=1e-6)
     np.testing.assert_array_equal(res.topk_ids[:, 0], p.argmax(1))
     # bank members are at novelty ~0; random directions far from the bank
-    assert (res.novelty[:10] < 1e-2).all() and (res.novelty[10:] > 0.3).all()
+    assert (res.novelty[:10] < 1e-2).all() and (res.novelty[10:] > 0.2).all()  # min 0.31
     assert (res.labels[:10] == bank.labels[:10].numpy()).all()
 
 
@@ -189,7 +190,8 @@ def test_calibrated_novelty_threshold_rejects_far_objects() -> None:
     bank.meta['unknown_calibration'] = calibrate_novelty(np.linspace(0, 0.2, 101), 0.05)
     clf = Classifier(bank, unknown_threshold=-1)
     assert clf.novelty_threshold == pytest.approx(0.19) and clf.unknown_threshold is None
-    res = clf.classify(torch.cat([raw[:5], 5 * torch.randn(5, raw.shape[1])]))
+    far = 5 * torch.randn(5, raw.shape[1], generator=torch.Generator().manual_seed(1))
+    res = clf.classify(torch.cat([raw[:5], far]))
     assert (res.labels[:5] >= 0).all() and (res.labels[5:] == UNKNOWN).all()
     explicit = Classifier(bank, unknown_threshold=0.999).classify(raw[:5])
     assert ((explicit.labels == UNKNOWN) == (explicit.scores < 0.999)).all()
@@ -211,3 +213,14 @@ def test_gamma_grid_by_squaring_equals_one_exp_per_gamma() -> None:
     gammas = (5.0, 10.0, 20.0, 40.0, 7.0, 14.0)
     for g, got in zip(gammas, log_vote_shares_grid(sims, y[10:], 4, gammas), strict=True):
         assert torch.allclose(got, log_vote_shares(sims, y[10:], 4, g), atol=1e-4)
+
+
+def test_classes_without_entries_get_probability_zero() -> None:
+    x, y, _, _ = _gaussians(12, classes=3)
+    sel = select(x.float(), y.numpy(), 5, gammas=(5.0, 50.0))       # classes 3, 4: empty
+    tf, head, bank = fit_selected(x.float(), y.numpy(), 5, sel)
+    prob, _ = head.evaluate(tf(x.float()), bank, y, 5)
+    assert torch.isfinite(prob).all() and (prob[:, 3:] < 1e-6).all()
+    assert torch.allclose(prob.sum(1), torch.ones(len(y)), atol=1e-5)
+    if head.lda_bias is not None:
+        assert torch.isfinite(head.lda_bias).all()                  # storable

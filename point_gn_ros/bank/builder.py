@@ -14,9 +14,9 @@ from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.bank.transform import FeatureTransform, Standardize
 from point_gn_ros.bank.head import Head, fit_head
-from point_gn_ros.bank.selection import (DEFAULT_ALPHAS, DEFAULT_GAMMAS, DEFAULT_WEIGHTS,
-                                         Selection, calibrate_novelty, calibrate_unknown,
-                                         select)
+from point_gn_ros.bank.selection import (DEFAULT_ALPHAS, DEFAULT_GAMMAS, DEFAULT_LDA_ALPHAS,
+                                         DEFAULT_WEIGHTS, Selection, calibrate_novelty,
+                                         calibrate_unknown, select)
 from point_gn_ros.recognizer import Encoder, encode_clouds, make_encoder
 
 
@@ -65,7 +65,8 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                feats: torch.Tensor | None = None,
                groups: np.ndarray | None = None,
                alphas: tuple[float, ...] = DEFAULT_ALPHAS,
-               weights: tuple[float, ...] = DEFAULT_WEIGHTS) -> FeatureBank:
+               weights: tuple[float, ...] = DEFAULT_WEIGHTS,
+               lda_alphas: tuple[float, ...] = DEFAULT_LDA_ALPHAS) -> FeatureBank:
     """Encode `dataset`, choose transform and head by k-fold CV on it, return the bank.
 
     groups: (N,) int or None; entries sharing a group (an object and its simulated views)
@@ -76,7 +77,8 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
         feats = encode_dataset(dataset, encoder, progress=progress, cache_dir=cache_dir)
     labels = np.asarray(dataset.labels, dtype=np.int64)
     sel = select(feats, labels, len(dataset.class_names), gammas, standardize_options,
-                 dims_options, folds, groups=groups, alphas=alphas, weights=weights)
+                 dims_options, folds, groups=groups, alphas=alphas, weights=weights,
+                 lda_alphas=lda_alphas)
     tf, head, vote_feats = fit_selected(feats, labels, len(dataset.class_names), sel)
     counts = Counter(labels.tolist())
     meta = {
@@ -92,7 +94,7 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                       'grid': {'gammas': list(gammas),
                                'standardize': list(standardize_options),
                                'dims': list(dims_options), 'alphas': list(alphas),
-                               'weights': list(weights)}},
+                               'lda_alphas': list(lda_alphas), 'weights': list(weights)}},
         'head': sel.head_meta(),
     }
     if sel.heldout_novelty is not None:

@@ -29,6 +29,7 @@ import torch
 _MAX_BLOCK = 1 << 24
 # exp() of a kernel logit this far below the best entry underflows float32: floor there.
 _TINY = float(torch.finfo(torch.float32).tiny)
+_ABSENT_LOG_PRIOR = -1e4
 
 
 @dataclass
@@ -136,8 +137,11 @@ def log_vote_shares_grid(sims: torch.Tensor, bank_labels: torch.Tensor, num_clas
 class CovarianceFit:
     """Class means and the eigen-decomposed pooled within-class covariance of z.
 
-    means (C, d); evals (d,) ascending >= 0; evecs (d, d) columns; log_prior (C,);
-    tau = tr(Sigma)/d (the shrinkage target's scale).
+    means (C, d) float64; evals (r,) >= 0 and evecs (d, r): the covariance's eigenpairs
+    (r = d, or the rank of a bank smaller than d: the other eigenvalues are 0);
+    log_prior (C,); tau = tr(Sigma)/d (the shrinkage target's scale). Vectors are
+    handled in the coordinates (z V, z - z V V^T): the whitened cosine is exact and a
+    small bank never needs a (d, d) eigen-decomposition.
     """
 
     means: torch.Tensor
@@ -148,38 +152,81 @@ class CovarianceFit:
 
     @classmethod
     def fit(cls, z: torch.Tensor, labels: torch.Tensor, num_classes: int) -> 'CovarianceFit':
-        """z: (N, d) float32; labels: (N,) int64 (every class present at least once)."""
+        """z: (N, d) float32; labels: (N,) int64 (classes without entries: prior ~0)."""
         z64 = z.double()
         counts = torch.bincount(labels, minlength=num_classes).double()
-        if (counts == 0).any():
-            raise ValueError('every class needs at least one bank entry')
         means = torch.zeros(num_classes, z.shape[1], dtype=torch.float64)
         means.index_add_(0, labels, z64)
-        means /= counts[:, None]
+        means /= counts.clamp_min(1)[:, None]
         centred = z64 - means[labels]
         dof = max(1, len(labels) - num_classes)      # pooled, unbiased
-        cov = centred.T @ centred / dof
-        evals, evecs = torch.linalg.eigh(cov)
-        evals = evals.clamp_min(0.0)
+        if len(labels) < z.shape[1]:                 # low rank: SVD of the N rows
+            _, sv, vh = torch.linalg.svd(centred, full_matrices=False)
+            keep = sv > 1e-10 * max(1.0, float(sv.max()) if len(sv) else 1.0)
+            evals, evecs = sv[keep] ** 2 / dof, vh[keep].T.contiguous()
+        else:
+            evals, evecs = torch.linalg.eigh(centred.T @ centred / dof)
+            evals = evals.clamp_min(0.0)
         tau = float(evals.sum() / z.shape[1])
-        return cls(means, evals, evecs, (counts / counts.sum()).log(), tau)
+        # A class without entries gets a finite, overwhelming penalty instead of log(0).
+        log_prior = (counts / counts.sum()).log().clamp_min(_ABSENT_LOG_PRIOR)
+        return cls(means, evals, evecs, log_prior, tau)
 
-    def shrunk(self, alpha: float) -> torch.Tensor:
-        """(d,) eigenvalues of Sigma_alpha, floored so a zero covariance stays invertible."""
+    @property
+    def full_rank(self) -> bool:
+        return self.evecs.shape[1] == self.evecs.shape[0]
+
+    def shrunk(self, alpha: float) -> tuple[torch.Tensor, float]:
+        """Eigenvalues of Sigma_alpha: (r,) on the eigenvectors, one value on the rest.
+
+        Floored so a zero covariance stays invertible.
+        """
         lam = (1.0 - alpha) * self.evals + alpha * self.tau
-        return lam.clamp_min(max(1e-12, 1e-9 * float(lam.max())))
+        floor = max(1e-12, 1e-9 * max(float(lam.max()) if len(lam) else 0.0, self.tau))
+        return lam.clamp_min(floor), max(alpha * self.tau, floor)
+
+    def coords(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """z: (N, d) -> (z V (N, r), z - z V V^T (N, d) or None when r = d), float64."""
+        z64 = z.double()
+        p = z64 @ self.evecs
+        return p, None if self.full_rank else z64 - p @ self.evecs.T
+
+    def whitened(self, coords: tuple[torch.Tensor, torch.Tensor | None], alpha: float
+                 ) -> torch.Tensor:
+        """Whitened rows z Sigma_alpha^(-1/2) in an orthonormal basis: (N, r [+ d]) float32."""
+        lam, lam_perp = self.shrunk(alpha)
+        p, c = coords
+        u = p * lam.rsqrt()
+        return (u if c is None else torch.cat([u, c * lam_perp ** -0.5], dim=1)).float()
+
+    def lda_logits(self, coords: tuple[torch.Tensor, torch.Tensor | None], alpha: float
+                   ) -> torch.Tensor:
+        """LDA logits z Sigma_a^-1 mu_c - mu_c Sigma_a^-1 mu_c / 2 + log prior_c: (N, C)."""
+        coef, bias = self._lda64(alpha)
+        p, c = coords
+        z = p @ self.evecs.T + (0 if c is None else c)
+        return z @ coef.T + bias
+
+    def _lda64(self, alpha: float) -> tuple[torch.Tensor, torch.Tensor]:
+        lam, lam_perp = self.shrunk(alpha)
+        pm, cm = self.coords(self.means)
+        coef = (pm / lam) @ self.evecs.T
+        quad = (pm * pm / lam).sum(1)
+        if cm is not None:
+            coef = coef + cm / lam_perp
+            quad = quad + (cm * cm).sum(1) / lam_perp
+        return coef, -0.5 * quad + self.log_prior
 
     def whitening(self, alpha: float) -> torch.Tensor:
         """Sigma_alpha^(-1/2): (d, d) float32, symmetric."""
+        lam, lam_perp = self.shrunk(alpha)
         v = self.evecs
-        return ((v * self.shrunk(alpha).rsqrt()) @ v.T).float()
+        w = (v * (lam.rsqrt() - lam_perp ** -0.5)) @ v.T
+        return (w + torch.eye(v.shape[0], dtype=w.dtype) * lam_perp ** -0.5).float()
 
     def lda(self, alpha: float) -> tuple[torch.Tensor, torch.Tensor]:
         """LDA under Sigma_alpha: coef (C, d) float32, bias (C,) float32 (see module doc)."""
-        inv = 1.0 / self.shrunk(alpha)
-        pm = self.means @ self.evecs                  # means in the eigenbasis
-        coef = (pm * inv) @ self.evecs.T
-        bias = -0.5 * (pm * pm * inv).sum(1) + self.log_prior
+        coef, bias = self._lda64(alpha)
         return coef.float(), bias.float()
 
 

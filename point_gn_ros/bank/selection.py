@@ -8,6 +8,8 @@ per fold.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 import itertools
 
@@ -19,8 +21,11 @@ from point_gn_ros.bank.transform import FeatureTransform, Standardize
 
 # Doubling steps: one exp() serves the whole grid (head.log_vote_shares_grid).
 DEFAULT_GAMMAS = tuple(5.0 * 2.0 ** k for k in range(11))          # 5 .. 5120
-DEFAULT_ALPHAS = (0.05, 0.1, 0.2, 0.4)
+DEFAULT_ALPHAS = (0.05, 0.1, 0.2, 0.4)                # whitening of the vote (a matmul each)
+DEFAULT_LDA_ALPHAS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4)  # LDA covariance (nearly free in CV)
 DEFAULT_WEIGHTS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
+# Below this many entries CV runs single-threaded (_threads_for).
+_SMALL_BANK = 2000
 # Gamma of the plain vote when the bank is too small to cross-validate anything.
 FALLBACK_GAMMA = 100.0
 
@@ -103,11 +108,14 @@ class Selection:
 
 
 def _min_class_groups(labels: np.ndarray, groups: np.ndarray | None) -> int:
-    """Fewest independent objects (groups, else entries) of any class."""
+    """Fewest independent objects (groups, else entries) of any class present."""
+    if len(labels) == 0:
+        return 0
     if groups is None:
-        return int(np.bincount(labels).min()) if len(labels) else 0
-    pairs = np.unique(np.stack([labels, np.asarray(groups)]), axis=1)
-    return int(np.bincount(pairs[0]).min())
+        counts = np.bincount(labels)
+    else:
+        counts = np.bincount(np.unique(np.stack([labels, np.asarray(groups)]), axis=1)[0])
+    return int(counts[counts > 0].min())        # classes with no entries at all: ignored
 
 
 @dataclass
@@ -122,14 +130,15 @@ class _FoldScores:
 def _fold_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
                  parts: list[np.ndarray], standardize: Standardize, dims: int | None,
                  gammas: tuple[float, ...], alphas: tuple[float, ...],
-                 whiten_options: tuple[bool, ...]) -> _FoldScores:
+                 lda_alphas: tuple[float, ...], whiten_options: tuple[bool, ...]
+                 ) -> _FoldScores:
     n, g = len(lab), len(gammas)
     spaces: list[float | None] = [None] if False in whiten_options else []
     if True in whiten_options:
         spaces += list(alphas)
     out = _FoldScores({a: torch.zeros(g, n, num_classes) for a in spaces},
                       {a: torch.zeros(n) for a in spaces},
-                      {a: torch.zeros(n, num_classes) for a in alphas})
+                      {a: torch.zeros(n, num_classes) for a in lda_alphas})
     everything = np.arange(n)
 
     def vote(space: float | None, sims: torch.Tensor, val: np.ndarray, train: np.ndarray) -> None:
@@ -144,21 +153,31 @@ def _fold_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
         z_tr, z_val = tf(feats[train]), tf(feats[val])
         if None in spaces:
             vote(None, z_val @ z_tr.T, val, train)   # once per fold, reused for every gamma
-        if not alphas:
+        if not alphas and not lda_alphas:
             continue
         fit = CovarianceFit.fit(z_tr, lab[train], num_classes)
-        p_tr, p_val = z_tr.double() @ fit.evecs, z_val.double() @ fit.evecs
-        pm = fit.means @ fit.evecs
-        for a in alphas:
-            inv = 1.0 / fit.shrunk(a)
-            logits = (p_val * inv) @ pm.T - 0.5 * (pm * pm * inv).sum(1) + fit.log_prior
+        c_tr, c_val = fit.coords(z_tr), fit.coords(z_val)     # once per fold
+        for a in lda_alphas:
+            logits = fit.lda_logits(c_val, a)
             out.lda[a][torch.from_numpy(val)] = torch.log_softmax(logits, dim=1).float()
+        for a in alphas:
             if a in spaces:
-                root = inv.sqrt()
-                u_tr = torch.nn.functional.normalize((p_tr * root).float(), dim=1)
-                u_val = torch.nn.functional.normalize((p_val * root).float(), dim=1)
+                u_tr = torch.nn.functional.normalize(fit.whitened(c_tr, a), dim=1)
+                u_val = torch.nn.functional.normalize(fit.whitened(c_val, a), dim=1)
                 vote(a, u_val @ u_tr.T, val, train)
     return out
+
+
+@contextmanager
+def _threads_for(n: int) -> Iterator[None]:
+    """One torch thread for small banks: thousands of tiny ops lose to thread hand-offs."""
+    before = torch.get_num_threads()
+    if n < _SMALL_BANK:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
@@ -168,7 +187,8 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
            seed: int = 0, groups: np.ndarray | None = None,
            alphas: tuple[float, ...] = DEFAULT_ALPHAS,
            weights: tuple[float, ...] = DEFAULT_WEIGHTS,
-           whiten_options: tuple[bool, ...] = (False, True)) -> Selection:
+           whiten_options: tuple[bool, ...] = (False, True),
+           lda_alphas: tuple[float, ...] = DEFAULT_LDA_ALPHAS) -> Selection:
     """Grid search by stratified k-fold CV on the bank.
 
     feats: (N, D) float32 raw encoder features; labels: (N,) int; groups: (N,) int or
@@ -176,10 +196,21 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
     PCA width, whether the vote runs on whitened features (and their shrinkage),
     gamma, the LDA shrinkage and fusion weight by held-out accuracy (ties: the earlier,
     simpler one: plain vote, smaller weight), then the temperature by held-out
-    log-loss. alphas=() or weights=(0,) gives the plain kernel vote. With fewer than
+    log-loss. alphas: whitening shrinkages; lda_alphas: LDA shrinkages. alphas=() or
+    weights=(0,) gives the plain kernel vote. With fewer than
     `folds` objects in some class the folds shrink to that count; with one, no CV is
     possible and the plain vote with FALLBACK_GAMMA is returned (`fallback` says why).
     """
+    with _threads_for(len(labels)):
+        return _select(feats, labels, num_classes, gammas, standardize_options, dims_options,
+                       folds, seed, groups, alphas, weights, whiten_options, lda_alphas)
+
+
+def _select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
+            gammas: tuple[float, ...], standardize_options: tuple[Standardize, ...],
+            dims_options: tuple[int | None, ...], folds: int, seed: int,
+            groups: np.ndarray | None, alphas: tuple[float, ...], weights: tuple[float, ...],
+            whiten_options: tuple[bool, ...], lda_alphas: tuple[float, ...]) -> Selection:
     labels = np.asarray(labels, dtype=np.int64)
     lab = torch.from_numpy(labels)
     m = _min_class_groups(labels, groups)
@@ -191,10 +222,12 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
     k = min(folds, m)
     fallback = None if k == folds else (f'a class has only {m} independent examples: '
                                         f'{k}-fold CV instead of {folds}')
-    if not any(w > 0 for w in weights):
-        alphas = ()
+    if not alphas or not any(w > 0 for w in weights):
+        alphas, lda_alphas, weights = (), (), (0.0,)
     if not alphas:
         whiten_options = (False,)
+    if not any(w > 0 for w in weights):
+        lda_alphas = ()
     weights = tuple(sorted({0.0, *weights}))
     parts = stratified_folds(labels, k, seed, groups)
     table: list[dict] = []
@@ -204,7 +237,7 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
         if dims is not None and dims >= min(len(p) for p in parts) * (k - 1):
             continue                     # PCA wider than a fold's bank: not fittable
         fs = _fold_scores(feats, lab, num_classes, parts, std, dims, gammas, alphas,
-                          whiten_options)
+                          lda_alphas, whiten_options)
         for space, votes in fs.votes.items():
             for gi, gamma in enumerate(gammas):
                 v = votes[gi]
