@@ -128,10 +128,16 @@ class NodeProcess:
     def __init__(self, params: dict[str, Any], log_path: Path, domain_id: int = DOMAIN_ID,
                  extra_env: dict[str, str] | None = None,
                  params_file: Path | None = None, command: Sequence[str] | None = None,
-                 base_env: dict[str, str] | None = None) -> None:
-        """command: the executable to run (default: this Python's `-m` module)."""
+                 base_env: dict[str, str] | None = None, node_name: str | None = None) -> None:
+        """Start the node; command: the executable (default: this Python's `-m` module).
+
+        node_name: a remapped name (`-r __node:=...`), so that no earlier test's node, still
+        known to DDS discovery for a while after it exited, can answer for it.
+        """
         args = list(command or [sys.executable, '-m', 'point_gn_ros.node.classifier_node'])
         args.append('--ros-args')
+        if node_name:
+            args += ['-r', f'__node:={node_name}']
         if params_file is not None:
             args += ['--params-file', str(params_file)]
         for key, value in params.items():

@@ -13,7 +13,7 @@ from conftest import load_modelnet_split
 import numpy as np
 import pytest
 
-from node_testing import (BANK_CLASSES, NODE_FQN, TEST_NUM_POINTS, Harness, NodeProcess, cloud_msg,
+from node_testing import (BANK_CLASSES, REPO, TEST_NUM_POINTS, Harness, NodeProcess, cloud_msg,
                           harness, latched_qos, latest_diagnostics, pick, reliable_qos,
                           require_ros_extras, stamp, stamp_key, tiny_bank, to_sensor_frame)
 
@@ -21,6 +21,8 @@ __all__ = ['harness', 'tiny_bank']  # fixtures, imported so that pytest finds th
 
 TOPIC, SILENT = 'objects', 'nobody_publishes_here'
 OPTICAL = 'camera_depth_optical_frame'
+# A remapped node name, with the shipped `/**` YAML: the parameters still apply.
+NODE_FQN = '/lifecycle_test_classifier'
 ANSWER_TIMEOUT_S = 60.0
 INPUT_TIMEOUT_S = 2.0
 
@@ -32,7 +34,8 @@ def node(tiny_bank: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[
                         'input_topics': [TOPIC, SILENT], 'autostart': False,
                         'queue_size': 64, 'qos_depth': 64, 'input_timeout_s': INPUT_TIMEOUT_S,
                         'unkown_threshold': 0.5},
-                       tmp_path_factory.mktemp('node') / 'node.log')
+                       tmp_path_factory.mktemp('node') / 'node.log',
+                       params_file=REPO / 'config' / 'classifier.yaml', node_name=NODE_FQN[1:])
     try:
         yield proc
     finally:

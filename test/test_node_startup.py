@@ -59,15 +59,16 @@ def test_managed_configure_failure_is_reported_and_the_node_stays(tmp_path: Path
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState, GetState
 
-    from node_testing import NODE_FQN, Harness
+    from node_testing import Harness
 
+    fqn = '/managed_failure_classifier'
     proc = NodeProcess({'bank_path': str(tmp_path / 'nope.npz'), 'autostart': False},
-                       tmp_path / 'managed.log')
+                       tmp_path / 'managed.log', node_name=fqn[1:])
     harness = Harness('managed_failure_test')
     try:
         req = ChangeState.Request(transition=Transition(label='configure'))
-        assert not harness.call(ChangeState, f'{NODE_FQN}/change_state', req, 60.0).success
-        state = harness.call(GetState, f'{NODE_FQN}/get_state', GetState.Request())
+        assert not harness.call(ChangeState, f'{fqn}/change_state', req, 60.0).success
+        state = harness.call(GetState, f'{fqn}/get_state', GetState.Request())
         assert state.current_state.label == 'unconfigured'
         assert proc.proc.poll() is None
         assert 'configure failed: ' in proc.log() and 'bank file not found' in proc.log()

@@ -170,3 +170,16 @@ def test_parameter_validation_and_closest_names() -> None:
     assert closest_parameter('input_topic', PARAMETERS) == 'input_topics'
     assert closest_parameter('zzz', PARAMETERS) is None
     assert LIVE <= set(PARAMETERS)
+
+
+def test_input_watchdog_names_silent_topics() -> None:
+    from point_gn_ros.node.watchdog import InputWatchdog
+
+    dog = InputWatchdog(3, now=0.0)
+    names = ['/a', '/b', '/c']
+    assert dog.problems(names, [1, 0, 1], 5.0, now=4.0) == ['', '', '']      # grace period
+    dog.on_message(0, now=5.5)
+    assert dog.problems(names, [1, 0, 1], 5.0, now=6.0) == [
+        '', 'no publisher on /b for 6 s', 'no message on /c for 6 s']
+    assert dog.problems(names, [1, 1, 1], 5.0, now=6.5)[1] == 'no message on /b for 6 s'
+    assert dog.problems(names, [0, 0, 0], 0.0, now=100.0) == ['', '', '']    # 0 = off

@@ -40,7 +40,6 @@ import threading
 import time
 from typing import Any
 
-import numpy as np
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
@@ -52,21 +51,18 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import String
-from visualization_msgs.msg import MarkerArray
 
 from point_gn_ros.errors import BankError, PointGNError
 from point_gn_ros.node.diagnostics import DiagnosticsBuilder
 from point_gn_ros.node.frames import UpConvention
-from point_gn_ros.node.markers import MarkerTracker, object_box
-from point_gn_ros.node.outputs import (class_name, make_detections, make_label_info,
-                                       vision_msgs_available)
+from point_gn_ros.node.outputs import Outputs, vision_msgs_available
 from point_gn_ros.node.params import (LIVE, PARAMETERS, NodeConfigError, Settings,
-                                      closest_parameter, resolve_unknown_threshold,
-                                      settings_from_values)
+                                      descriptors, resolve_unknown_threshold,
+                                      settings_from_values, unknown_override_warnings)
 from point_gn_ros.node.pipeline import Answer, Pipeline
 from point_gn_ros.node.rate_limited_log import RateLimitedLogger
 from point_gn_ros.node.stats import NodeStats
+from point_gn_ros.node.watchdog import InputWatchdog
 from point_gn_ros.node.work_queue import WorkQueue
 
 NODE_NAME = 'point_gn_classifier'
@@ -76,8 +72,6 @@ WARN_PERIOD_S = 5.0
 WORKER_JOIN_TIMEOUT_S = 10.0
 # Counted when a message taken before deactivate is finished while inactive (not published).
 REJECT_INACTIVE = 'node inactive'
-# Overrides that are not ours but legitimate (rclpy's own, QoS overrides).
-_FOREIGN_PARAMETERS = ('use_sim_time', 'start_type_description_service', 'class_names')
 
 Extension = Callable[['ClassifierNode'], ManagedEntity]
 
@@ -112,7 +106,8 @@ class ClassifierNode(LifecycleNode):
         self._worker: threading.Thread | None = None
         self._stop = threading.Event()
         self._timer: Any = None
-        self._lifecycle_pubs: list[Any] = []
+        self._outputs: Outputs | None = None
+        self._watchdog: InputWatchdog | None = None
         self._diagnostic_sources: list[Callable[[str], Any]] = []
         for make in extensions:
             self.add_managed_entity(make(self))
@@ -125,24 +120,14 @@ class ClassifierNode(LifecycleNode):
     # ------------------------------------------------------------------ parameters
 
     def _declare_parameters(self) -> None:
-        for name, (default, description, extra) in PARAMETERS.items():
-            desc = ParameterDescriptor(description=description, read_only=name not in LIVE,
-                                       **extra)
-            if isinstance(default, list):   # an explicit type, so that [] would still be valid
-                desc.type = ParameterType.PARAMETER_STRING_ARRAY
+        for name, (default, desc) in descriptors().items():
             self.declare_parameter(name, default, desc)
 
     def _warn_unknown_overrides(self) -> None:
-        """A misspelt `-p name:=...` or YAML key would be silently ignored: say so."""
-        for name in sorted(self._parameter_overrides):
-            if (name in PARAMETERS or name in _FOREIGN_PARAMETERS or self.has_parameter(name)
-                    or name.startswith('qos_overrides.')):
-                continue
-            hint = closest_parameter(name, PARAMETERS)
-            self.get_logger().warning(
-                f"unknown parameter '{name}' ignored"
-                + (f"; did you mean '{hint}'?" if hint else
-                   f" (parameters: {', '.join(PARAMETERS)})"))
+        """Misspelt overrides, warned once the extensions have declared their parameters."""
+        undeclared = [n for n in self._parameter_overrides if not self.has_parameter(n)]
+        for warning in unknown_override_warnings(undeclared):
+            self.get_logger().warning(warning)
 
     def _values(self) -> dict[str, Any]:
         return {name: self.get_parameter(name).value for name in PARAMETERS}
@@ -207,20 +192,14 @@ class ClassifierNode(LifecycleNode):
         self._pipeline.topic_names = [sub.topic_name or topic
                                       for sub, topic in zip(self._subs, s.input_topics,
                                                             strict=True)]
-        now = time.monotonic()
-        self._activated_at = now
-        self._last_msg = [now] * len(self._subs)
-        self._last_publisher = [now] * len(self._subs)
+        self._watchdog = InputWatchdog(len(self._subs))
         ret = super().on_activate(state)          # enables the lifecycle publishers
         self._active = True
         self._publish_labels()
-        outputs = [self._pub_cls.topic_name, self._pub_markers.topic_name]
-        if self._pub_det is not None:
-            outputs.insert(0, self._pub_det.topic_name)
         self.get_logger().info(
             f"classifying {', '.join(self._pipeline.topic_names)} ({s.qos_reliability}, "
             f"depth {s.qos_depth}, segment field {s.segment_field or 'none'}, up axis "
-            f"{s.up_axis}) -> {', '.join(outputs)}")
+            f"{s.up_axis}) -> {', '.join(self._outputs.topic_names())}")
         return ret
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -264,26 +243,14 @@ class ClassifierNode(LifecycleNode):
                                f'device {s.device}, {s.torch_threads} thread(s)')
         self._set_recognizer(recognizer)
 
-        out_qos = QoSProfile(depth=max(10, s.qos_depth), reliability=ReliabilityPolicy.RELIABLE,
-                             history=HistoryPolicy.KEEP_LAST)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._pub_cls = self._lifecycle_pub(PointCloud2, '~/classifications', out_qos)
-        self._pub_markers = self._lifecycle_pub(MarkerArray, '~/markers', out_qos)
-        self._pub_names = self._lifecycle_pub(String, '~/class_names', latched)
-        self._pub_det = self._pub_labels = None
-        if self.has_vision_msgs:
-            from vision_msgs.msg import Detection3DArray, LabelInfo
-            self._pub_det = self._lifecycle_pub(Detection3DArray, '~/detections', out_qos)
-            self._pub_labels = self._lifecycle_pub(LabelInfo, '~/label_info', latched)
-        else:
+        self._outputs = Outputs(self, s.input_topics, s.qos_depth, self.has_vision_msgs)
+        if not self.has_vision_msgs:
             self.get_logger().warning('vision_msgs is not installed: no ~/detections or '
                                       '~/label_info, only ~/classifications (PointCloud2)')
         self._pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
         self._queue: WorkQueue[PointCloud2] = WorkQueue(len(s.input_topics), s.queue_size)
         self._stats = NodeStats(len(s.input_topics))
-        self._markers = MarkerTracker(s.input_topics)
         self._warn = RateLimitedLogger(self.get_logger().warning, WARN_PERIOD_S)
         self._diagnostics = DiagnosticsBuilder()
         self._stop = threading.Event()
@@ -295,11 +262,6 @@ class ClassifierNode(LifecycleNode):
             name='point_gn_worker', daemon=True)
         self._worker.start()
         self._timer = self.create_timer(1.0, self._publish_diagnostics)
-
-    def _lifecycle_pub(self, msg_type: Any, topic: str, qos: QoSProfile) -> Any:
-        pub = self.create_lifecycle_publisher(msg_type, topic, qos)
-        self._lifecycle_pubs.append(pub)
-        return pub
 
     def _make_recognizer(self) -> Any:
         from point_gn_ros.bank.store import FeatureBank
@@ -374,12 +336,10 @@ class ClassifierNode(LifecycleNode):
         """The latched class list: ~/class_names and ~/label_info."""
         if not self._active:
             return
-        self._pub_names.publish(String(data='\n'.join(self.class_names)))
-        if self._pub_labels is not None:
-            threshold = resolve_unknown_threshold(self.recognizer.bank,
-                                                  self.settings.unknown_threshold)
-            self._pub_labels.publish(make_label_info(self.class_names, threshold,
-                                                     self.get_clock().now().to_msg()))
+        threshold = resolve_unknown_threshold(self.recognizer.bank,
+                                              self.settings.unknown_threshold)
+        self._outputs.publish_labels(self.class_names, threshold,
+                                     self.get_clock().now().to_msg())
 
     def _destroy_subscriptions(self) -> None:
         for sub in self._subs:
@@ -392,9 +352,9 @@ class ClassifierNode(LifecycleNode):
         if self._timer is not None:
             self.destroy_timer(self._timer)
             self._timer = None
-        for pub in self._lifecycle_pubs:
-            self.destroy_lifecycle_publisher(pub)
-        self._lifecycle_pubs = []
+        if self._outputs is not None:
+            self._outputs.destroy()
+            self._outputs = None
         if getattr(self, '_pub_diag', None) is not None:
             self.destroy_publisher(self._pub_diag)
             self._pub_diag = None
@@ -407,61 +367,36 @@ class ClassifierNode(LifecycleNode):
     def _on_cloud(self, topic_index: int, msg: PointCloud2) -> None:
         """Subscription callback: enqueue with the receipt time, nothing else."""
         self._stats.on_received(topic_index)
-        self._last_msg[topic_index] = time.monotonic()
+        self._watchdog.on_message(topic_index)
         self._queue.put(topic_index, msg)
 
     # ------------------------------------------------------------------ output
 
     def _publish(self, answer: Answer) -> None:
         """Publish one message's answer (worker thread)."""
-        from point_gn_ros.pointcloud2 import make_classifications
         job = answer.job
-        ti = job.item.topic_index
         if not self._active:       # taken before deactivate: counted, not answered
             self._stats.on_rejected(REJECT_INACTIVE)
             return
-        header = job.item.payload.header
-        s = self.settings
         # The names of the recognizer that produced this answer (the worker swaps it only
         # between batches; self.class_names may already be a newer bank's).
-        names = self._pipeline.class_names
-        out = make_classifications(header, answer.centroids, answer.labels, answer.scores,
-                                   answer.topk_ids, answer.topk_scores,
-                                   np.asarray(job.segment_ids, dtype=np.int64), ti)
-        self._pub_cls.publish(out)
-        if self._pub_det is not None and self._pub_det.get_subscription_count():
-            self._pub_det.publish(make_detections(header, answer, names))
-        if self._pub_markers.get_subscription_count():   # nobody watching: skip the work
-            boxes = [object_box(c, class_name(names, int(lbl)), int(lbl), float(sc))
-                     for c, lbl, sc in zip(job.clouds, answer.labels, answer.scores,
-                                           strict=True)]
-            self._pub_markers.publish(self._markers.build(ti, header, boxes,
-                                                          s.marker_lifetime_s))
+        self._outputs.publish(answer, self._pipeline.class_names,
+                              self.settings.marker_lifetime_s)
+        header = job.item.payload.header
         stamp_ns = header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
         stamp_lat = stamp_latency_s(self.get_clock().now().nanoseconds, stamp_ns)
-        self._stats.on_published(ti, len(job.clouds), time.monotonic() - job.item.receipt_time,
-                                 stamp_lat)
+        self._stats.on_published(job.item.topic_index, len(job.clouds),
+                                 time.monotonic() - job.item.receipt_time, stamp_lat)
 
     # ------------------------------------------------------------------ diagnostics
 
     def _input_problems(self) -> list[str]:
         """Per input topic: '' or why it is suspicious (no publisher / no message for N s)."""
-        s = self.settings
-        if not self._active or s.input_timeout_s <= 0:
-            return [''] * len(self._subs)
-        now, out = time.monotonic(), []
-        for i, sub in enumerate(self._subs):
-            if sub.get_publisher_count() > 0:
-                self._last_publisher[i] = now
-            if now - self._last_publisher[i] > s.input_timeout_s:
-                out.append(f'no publisher on {sub.topic_name} for '
-                           f'{now - self._last_publisher[i]:.0f} s')
-            elif now - self._last_msg[i] > s.input_timeout_s:
-                out.append(f'no message on {sub.topic_name} for '
-                           f'{now - self._last_msg[i]:.0f} s')
-            else:
-                out.append('')
-        return out
+        if not self._active:
+            return []
+        return self._watchdog.problems([sub.topic_name for sub in self._subs],
+                                       [sub.get_publisher_count() for sub in self._subs],
+                                       self.settings.input_timeout_s)
 
     def _publish_diagnostics(self) -> None:
         if self._pipeline is None:

@@ -1,8 +1,8 @@
-"""Standard ROS messages for the node's answers: vision_msgs when installed.
+"""The node's answers as ROS messages, and the publishers that send them.
 
-`vision_msgs` (Detection3DArray, LabelInfo) comes with every ROS distribution but has no
-pip wheel; where it cannot be imported the node keeps its PointCloud2 output only and
-says so once at start.
+Message builders for vision_msgs (Detection3DArray, LabelInfo) and `Outputs`, the set of
+lifecycle publishers. `vision_msgs` comes with every ROS distribution but has no pip wheel;
+where it cannot be imported the node keeps its PointCloud2 output only and says so once.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from point_gn_ros.node.markers import MarkerTracker, object_box
 from point_gn_ros.node.pipeline import Answer
 
 UNKNOWN_NAME = 'unknown'
@@ -74,3 +75,71 @@ def make_label_info(class_names: Sequence[str], threshold: float | None, stamp: 
     info.header.stamp = stamp
     info.class_map = [VisionClass(class_id=i, class_name=n) for i, n in enumerate(class_names)]
     return info
+
+
+class Outputs:
+    """The node's answer publishers (lifecycle publishers: they publish only while active).
+
+    Created on configure, destroyed on cleanup: `~/classifications`, `~/markers`,
+    `~/class_names` (latched) and, with vision_msgs, `~/detections` and `~/label_info`
+    (latched). `publish()` runs on the worker thread.
+    """
+
+    def __init__(self, node: Any, input_topics: Sequence[str], qos_depth: int,
+                 with_vision_msgs: bool) -> None:
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+        from std_msgs.msg import String
+        from visualization_msgs.msg import MarkerArray
+
+        self._node = node
+        out_qos = QoSProfile(depth=max(10, qos_depth), reliability=ReliabilityPolicy.RELIABLE,
+                             history=HistoryPolicy.KEEP_LAST)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        make = node.create_lifecycle_publisher
+        self.classifications = make(PointCloud2, '~/classifications', out_qos)
+        self.markers = make(MarkerArray, '~/markers', out_qos)
+        self.class_names = make(String, '~/class_names', latched)
+        self.detections = self.label_info = None
+        if with_vision_msgs:
+            from vision_msgs.msg import Detection3DArray, LabelInfo
+            self.detections = make(Detection3DArray, '~/detections', out_qos)
+            self.label_info = make(LabelInfo, '~/label_info', latched)
+        self._tracker = MarkerTracker(input_topics)
+
+    def topic_names(self) -> list[str]:
+        pubs = [self.detections, self.classifications, self.markers]
+        return [p.topic_name for p in pubs if p is not None]
+
+    def publish(self, answer: Answer, class_names: Sequence[str], marker_lifetime_s: float
+                ) -> None:
+        """One message's answer on every output (detections and markers only if watched)."""
+        from point_gn_ros.pointcloud2 import make_classifications
+        job = answer.job
+        header = job.item.payload.header
+        ti = job.item.topic_index
+        self.classifications.publish(make_classifications(
+            header, answer.centroids, answer.labels, answer.scores, answer.topk_ids,
+            answer.topk_scores, np.asarray(job.segment_ids, dtype=np.int64), ti))
+        if self.detections is not None and self.detections.get_subscription_count():
+            self.detections.publish(make_detections(header, answer, class_names))
+        if self.markers.get_subscription_count():   # nobody watching: skip the work
+            boxes = [object_box(c, class_name(class_names, int(lbl)), int(lbl), float(sc))
+                     for c, lbl, sc in zip(job.clouds, answer.labels, answer.scores,
+                                           strict=True)]
+            self.markers.publish(self._tracker.build(ti, header, boxes, marker_lifetime_s))
+
+    def publish_labels(self, class_names: Sequence[str], threshold: float | None,
+                       stamp: Any) -> None:
+        """The latched class list: ~/class_names and ~/label_info."""
+        from std_msgs.msg import String
+        self.class_names.publish(String(data='\n'.join(class_names)))
+        if self.label_info is not None:
+            self.label_info.publish(make_label_info(class_names, threshold, stamp))
+
+    def destroy(self) -> None:
+        for pub in (self.classifications, self.markers, self.class_names, self.detections,
+                    self.label_info):
+            if pub is not None:
+                self._node.destroy_lifecycle_publisher(pub)

@@ -1,7 +1,8 @@
 """The classifier node's parameters: names, defaults, descriptions, ranges and validation.
 
-No rclpy here: the node declares these, tests and tools read them. `settings_from_values`
-turns the declared values into a validated, immutable `Settings`.
+No rclpy here: the node declares these (`descriptors()`), tests and tools read them.
+`settings_from_values` turns the declared values into a validated, immutable `Settings`;
+`unknown_override_warnings` catches misspelt overrides.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
 from point_gn_ros.errors import PointGNError
 from point_gn_ros.node.frames import UP_AXES
@@ -146,6 +147,37 @@ def resolve_unknown_threshold(bank: Any, value: float) -> float | None:
         raise NodeConfigError(f'unknown_threshold={value:g} asks for the calibrated threshold, '
                               f'but {bank.path} holds no calibration')
     return float(calib['threshold'])
+
+
+def descriptors() -> dict[str, tuple[Any, ParameterDescriptor]]:
+    """Name -> (default, ParameterDescriptor) for declaring every parameter; LIVE ones writable."""
+    out = {}
+    for name, (default, description, extra) in PARAMETERS.items():
+        desc = ParameterDescriptor(description=description, read_only=name not in LIVE, **extra)
+        if isinstance(default, list):   # an explicit type, so that [] would still be valid
+            desc.type = ParameterType.PARAMETER_STRING_ARRAY
+        out[name] = (default, desc)
+    return out
+
+
+# Overrides that are legitimate although not in PARAMETERS (rclpy's own, set by the node).
+_FOREIGN = ('use_sim_time', 'start_type_description_service', 'class_names')
+
+
+def unknown_override_warnings(names: Any) -> list[str]:
+    """One warning per override name the node does not know, naming the closest valid one.
+
+    A misspelt `-p name:=...` or YAML key is otherwise silently ignored by rclpy.
+    """
+    out = []
+    for name in sorted(names):
+        if name in PARAMETERS or name in _FOREIGN or name.startswith('qos_overrides.'):
+            continue
+        hint = closest_parameter(name, PARAMETERS)
+        out.append(f"unknown parameter '{name}' ignored"
+                   + (f"; did you mean '{hint}'?" if hint else
+                      f" (parameters: {', '.join(PARAMETERS)})"))
+    return out
 
 
 def closest_parameter(name: str, known: Any) -> str | None:
