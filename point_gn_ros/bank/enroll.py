@@ -445,8 +445,9 @@ def save_atomic(bf: BankFile, path: str | os.PathLike[str]) -> Path:
 
 def _restore(bank: FeatureBank, stored: np.ndarray, moved: bool) -> BankFile:
     """The BankFile of a refitted bank: stored values re-derived only if the rows moved."""
-    if moved:
-        stored = bank.features.numpy().astype(stored.dtype)
+    if not moved:          # rows already are normalize(stored), row by row
+        return BankFile(bank, stored)
+    stored = bank.features.numpy().astype(stored.dtype)
     return BankFile(replace(bank, features=_from_stored(stored)), stored)
 
 
