@@ -49,6 +49,10 @@ def test_add_files_then_remove(small_bank_path: Path, tmp_path: Path,
     back = BankFile.load(out)
     assert 'toolbox' not in back.bank.class_names and back.bank.meta['bank_version'] == 3
     assert [e['action'] for e in back.bank.meta['enrollments']] == ['add', 'add', 'remove']
+    assert main(['bank', 'history', str(out)]) == 0
+    text = capsys.readouterr().out
+    assert 'bank version 3' in text and 'v1 ' in text and "add 'toolbox' x6" in text
+    assert "remove 'toolbox'" in text and 'last refit (v3)' in text
 
 
 def test_errors_are_one_line(small_bank_path: Path, tmp_path: Path,

@@ -1,4 +1,4 @@
-"""`point_gn bank add|remove`: enroll examples into a bank, or forget a class, offline.
+"""`point_gn bank add|remove|history`: enroll examples into a bank, forget a class, offline.
 
 Same operations and refitting as the node's live enrollment (bank/enroll.py); the bank is
 rewritten atomically (in place, or to -o OUT).
@@ -41,6 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument('class_name', metavar='NAME', help='class to remove')
     _common(r)
     r.set_defaults(func=_remove)
+
+    h = bsub.add_parser('history', help='bank version, per-class counts and every enrollment')
+    h.add_argument('bank', metavar='BANK', help='bank file (.npz)')
+    h.set_defaults(func=_history)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -132,6 +136,26 @@ def _remove(args: argparse.Namespace) -> int:
     res = remove_class(BankFile.load(args.bank), args.class_name, source='point_gn bank remove',
                        policy=_policy(args))
     return _write(args, res)
+
+
+def _history(args: argparse.Namespace) -> int:
+    from point_gn_ros.bank.enroll import bank_version, class_counts
+    from point_gn_ros.bank.store import FeatureBank
+
+    bank = FeatureBank.load(args.bank)
+    print(f'{bank.path}: bank version {bank_version(bank)}, {len(bank)} entries, '
+          f'{bank.num_classes} classes')
+    print('  ' + ', '.join(f'{c} {n}' for c, n in class_counts(bank).items()))
+    for e in bank.meta.get('enrollments', []):
+        dups = f', {e["near_duplicates"]} near-duplicate(s)' if e.get('near_duplicates') else ''
+        print(f'  v{e["version"]} {e["time"]} {e["action"]} {e["class"]!r} x{e["count"]}'
+              f'{dups} ({e["source"]})')
+    refit = bank.meta.get('refit')
+    if refit:
+        print(f'  last refit (v{refit["version"]}): gamma {refit["gamma"]:g} '
+              f'({refit["gamma_reason"]}); head {refit.get("head", "?")}; threshold '
+              f'{refit["calibration_reason"]}')
+    return 0
 
 
 def _write(args: argparse.Namespace, res) -> int:
