@@ -57,7 +57,7 @@ def _drain(eng: EnrollEngine, rec: _FakeRecognizer, timeout: float = 10.0) -> No
     end = time.monotonic() + timeout
     while eng.step(rec) and time.monotonic() < end:
         pass
-    eng._committer.submit(lambda: None).result(timeout)      # commits queued before this
+    eng.flush(timeout)
 
 
 def test_streamed_examples_coalesce_into_one_version(tmp_path: Path) -> None:
@@ -127,7 +127,7 @@ def test_producers_worker_and_services_race(tmp_path: Path) -> None:
         time.sleep(0.01)
     stop.set()
     threads[0].join()
-    eng._committer.submit(lambda: None).result(10)
+    eng.flush(10)
     counts = class_counts(live.current().bank)
     assert counts['p'] == 30 and counts['q'] == 30
     assert eng.counters['enrolled'] == 60

@@ -91,11 +91,11 @@ class EnrollEngine:
         """Queue examples (z-up (N_i, 3) float32 clouds) of one class; -> (accepted, why)."""
         name = class_name.strip()
         if not name:
-            return self._refuse(len(clouds), 'empty class name')
+            return self.refuse(len(clouds), 'empty class name')
         small = [len(c) for c in clouds if len(c) < self.min_points]
         clouds = [c for c in clouds if len(c) >= self.min_points]
         if small:
-            self._refuse(len(small), f'{len(small)} example(s) of {name!r} have fewer than '
+            self.refuse(len(small), f'{len(small)} example(s) of {name!r} have fewer than '
                                      f'min_points={self.min_points} points')
         if not clouds:
             return False, 'no usable example'
@@ -111,7 +111,7 @@ class EnrollEngine:
                     self._requests.append(_Request(name, list(clouds), source))
                 self._pending += len(clouds)
                 return True, f'{len(clouds)} example(s) of {name!r} queued'
-        return self._refuse(len(clouds), f'{pending} examples already waiting (max '
+        return self.refuse(len(clouds), f'{pending} examples already waiting (max '
                                          f'{self.max_pending})')
 
     def start_capture(self, class_name: str, topics: frozenset[int] | None) -> tuple[bool, str]:
@@ -244,6 +244,10 @@ class EnrollEngine:
         cap = self._capture
         return '' if cap is None else f'{cap.class_name} ({len(cap.clouds)})'
 
+    def flush(self, timeout: float = SERVICE_TIMEOUT_S) -> None:
+        """Wait until every change handed to the committer so far is applied."""
+        self._committer.submit(lambda: None).result(timeout)
+
     def close(self) -> None:
         """Finish queued commits (bounded by their own work) and stop the committer."""
         self._committer.shutdown(wait=True, cancel_futures=True)
@@ -259,9 +263,10 @@ class EnrollEngine:
             if self._requests and self._requests[0] is req:
                 self._requests.popleft()
                 self._pending -= len(req.clouds)
-        self._refuse(len(req.clouds), f'{req.class_name!r}: {why}')
+        self.refuse(len(req.clouds), f'{req.class_name!r}: {why}')
 
-    def _refuse(self, count: int, why: str) -> tuple[bool, str]:
+    def refuse(self, count: int, why: str) -> tuple[bool, str]:
+        """Count `count` refused examples and warn (rate-limited per reason)."""
         self._count('refused', count)
         self._warn(('refused', why.split(':')[0]),
                    f'enrollment: {count} example(s) refused: {why}')

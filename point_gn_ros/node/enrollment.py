@@ -225,13 +225,13 @@ class Enrollment(ManagedEntity):
 
         if self._pairing.expired:
             n, self._pairing.expired = self._pairing.expired, 0
-            self.engine._refuse(n, f'{n} detection array(s) or scene cloud(s) found no partner '
+            self.engine.refuse(n, f'{n} detection array(s) or scene cloud(s) found no partner '
                                    f'with the same stamp within {PAIR_TIMEOUT_S:g} s')
         for dets, scene in pairs:
             try:
                 xyz = decode_xyz(scene, allow_empty=True).xyz
             except DecodeError as exc:
-                self.engine._refuse(len(dets.detections), f'scene cloud not decodable: {exc}')
+                self.engine.refuse(len(dets.detections), f'scene cloud not decodable: {exc}')
                 continue
             rot = self._pipeline.frame_rotation(scene.header.frame_id)
             per_class: dict[str, list] = {}
@@ -243,7 +243,7 @@ class Enrollment(ManagedEntity):
                     continue
                 per_class.setdefault(label, []).append(to_z_up(crop_box(xyz, det.bbox), rot))
             if unlabelled:
-                self.engine._refuse(unlabelled, 'detection without results[0].hypothesis.'
+                self.engine.refuse(unlabelled, 'detection without results[0].hypothesis.'
                                                 'class_id')
             for label, clouds in per_class.items():
                 self.engine.submit(label, clouds, '~/enroll')
@@ -255,7 +255,7 @@ class Enrollment(ManagedEntity):
         try:
             xyz = decode_xyz(msg, allow_empty=True).xyz
         except DecodeError as exc:
-            self.engine._refuse(1, f'~/enroll_cloud message not decodable: {exc}')
+            self.engine.refuse(1, f'~/enroll_cloud message not decodable: {exc}')
             return
         rot = self._pipeline.frame_rotation(msg.header.frame_id)
         self.engine.submit(name, [to_z_up(xyz, rot)], '~/enroll_cloud')
