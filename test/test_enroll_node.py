@@ -174,7 +174,7 @@ def test_enroll_predict_save_restart_forget(harness: Harness, tiny_bank: Path, t
     pytest.importorskip('vision_msgs.msg', reason='vision_msgs is built by '
                         '../shared/ros/install-extras.sh (ROS installs: ros-jazzy-vision-msgs)')
     from sensor_msgs.msg import PointCloud2
-    from vision_msgs.msg import Detection3DArray
+    from vision_msgs.msg import Detection3DArray, LabelInfo
 
     saved = tmp_path / 'taught.npz'
     node = _start(tiny_bank, tmp_path / 'node1.log', save_bank_path=str(saved))
@@ -188,11 +188,18 @@ def test_enroll_predict_save_restart_forget(harness: Harness, tiny_bank: Path, t
         pub_scene = harness.node.create_publisher(PointCloud2, f'{NODE_FQN}/enroll_scene',
                                                   reliable_qos(10))
         harness.wait_for_subscribers([pub, pub_scene], node)
+        labels = []
+        label_sub = harness.node.create_subscription(LabelInfo, f'{NODE_FQN}/label_info',
+                                                     labels.append, latched_qos())
         dets, scene = _labelled_scene(sofa[0], NEW, 11)
         pub_scene.publish(scene)          # either may come first
         pub.publish(dets)
         names = c.wait_classes(lambda names: NEW in names)
         assert names[:6] == [n for n in names if n != NEW] and names[-1] == NEW
+        assert harness.spin_until(lambda: labels and any(
+            v.class_name == NEW for v in labels[-1].class_map), 10.0), labels
+        assert [v.class_name for v in labels[-1].class_map] == names
+        harness.node.destroy_subscription(label_sub)
         taught = c.classify(sofa[1] + others, 200)
         sofa_id = names.index(NEW)
         assert all(int(a[0][0]) == sofa_id for a in taught[:len(sofa[1])]), taught
