@@ -74,6 +74,8 @@ def main() -> None:
                     help='also score every test object at a random yaw (seed 0)')
     ap.add_argument('--open-set', default=None, metavar='N_OR_CLASSES',
                     help='also an open-set run with this many known classes (seed 0)')
+    ap.add_argument('--open-set-only', action='store_true',
+                    help='only the open-set run (skips the closed-set bank and its CV)')
     ap.add_argument('--shuffle-check', action='store_true')
     ap.add_argument('--out', default=None, help='write the JSON summary here')
     args = ap.parse_args()
@@ -92,8 +94,25 @@ def main() -> None:
     y_train, y_test = np.asarray(train.labels), np.asarray(test.labels)
     names = list(test.class_names)
 
-    t0 = time.perf_counter()
     dims = tuple(None if d == 0 else d for d in args.dims)
+    result: dict = {'encoder': cfg.to_dict()}
+    if args.open_set:
+        known = choose_known(args.open_set, names, 0)
+        sub = KnownSubset(train, known)
+        obank = build_bank(sub, encoder=enc, feats=f_train[torch.from_numpy(sub.index)],
+                           progress=False, standardize_options=tuple(args.standardize),
+                           dims_options=dims)
+        ores = Classifier(obank, unknown_threshold=-1).classify(f_test, top_k=1)
+        result['open_set'] = open_set_report(y_test, known, ores.labels, ores.novelty,
+                                             ores.scores, ores.topk_ids[:, 0])
+        result['open_set'].update(known_classes=obank.class_names, head=obank.meta['head'],
+                                  unknown_rule=obank.meta['unknown_calibration'])
+        print(f'open set ({len(known)} known): {json.dumps(result["open_set"])}', flush=True)
+    if args.open_set_only:
+        if args.out:
+            Path(args.out).write_text(json.dumps(result, indent=2))
+        return
+    t0 = time.perf_counter()
     bank = build_bank(train, encoder=enc, feats=f_train, progress=False,
                       standardize_options=tuple(args.standardize), dims_options=dims)
     sel, head = bank.meta['selection'], bank.meta['head']
@@ -102,9 +121,8 @@ def main() -> None:
           f'cv={100 * sel["cv_accuracy"]:.2f} %')
     clf = Classifier(bank)
     res = clf.classify(f_test, top_k=1)
-    result = {'encoder': cfg.to_dict(), 'selection': {k: v for k, v in sel.items()
-                                                      if k != 'table'},
-              'head': head, 'test_head': _figures(y_test, res.labels, names)}
+    result.update(selection={k: v for k, v in sel.items() if k != 'table'}, head=head,
+                  test_head=_figures(y_test, res.labels, names))
     tf, vhead, vfeats, vrow = _vote_baseline(bank, f_train, y_train)
     vote_pred = vhead.evaluate(tf(f_test), vfeats, bank.labels, 40)[0].argmax(1).numpy()
     result['test_vote'] = {**_figures(y_test, vote_pred, names), 'cv': vrow}
@@ -122,18 +140,6 @@ def main() -> None:
         result['yawed_test_vote'] = _figures(y_test, vp, names)
         print(f'random-yaw test: head {json.dumps(result["yawed_test_head"])}, vote '
               f'{json.dumps(result["yawed_test_vote"])}')
-    if args.open_set:
-        known = choose_known(args.open_set, names, 0)
-        sub = KnownSubset(train, known)
-        obank = build_bank(sub, encoder=enc, feats=f_train[torch.from_numpy(sub.index)],
-                           progress=False, standardize_options=tuple(args.standardize),
-                           dims_options=dims)
-        ores = Classifier(obank, unknown_threshold=-1).classify(f_test, top_k=1)
-        result['open_set'] = open_set_report(y_test, known, ores.labels, ores.novelty,
-                                             ores.scores, ores.topk_ids[:, 0])
-        result['open_set'].update(known_classes=obank.class_names, head=obank.meta['head'],
-                                  unknown_rule=obank.meta['unknown_calibration'])
-        print(f'open set ({len(known)} known): {json.dumps(result["open_set"])}')
     if args.shuffle_check:
         rng = np.random.default_rng(0)
         shuffled = (test[i][0][rng.permutation(len(test[i][0]))] for i in range(len(test)))

@@ -224,3 +224,18 @@ def test_classes_without_entries_get_probability_zero() -> None:
     assert torch.allclose(prob.sum(1), torch.ones(len(y)), atol=1e-5)
     if head.lda_bias is not None:
         assert torch.isfinite(head.lda_bias).all()                  # storable
+
+
+@pytest.mark.parametrize('n', [12, 300])        # low-rank (SVD) and full (eigh) paths
+def test_lda_logits_in_coordinates_equal_the_stored_coefficients(n: int) -> None:
+    x, y, _, _ = _gaussians(n // 4, d=20)
+    z = torch.nn.functional.normalize(x.float(), dim=1)
+    fit = CovarianceFit.fit(z, y, 4)
+    for a in (0.05, 0.4):
+        coef, bias = fit.lda(a)
+        assert torch.allclose(fit.lda_logits(fit.coords(z), a).float(), z @ coef.T + bias,
+                              rtol=1e-4, atol=1e-3)
+        u = fit.whitened(fit.coords(z), a)
+        g1 = torch.nn.functional.normalize(u, dim=1)
+        g2 = torch.nn.functional.normalize(z @ fit.whitening(a), dim=1)
+        assert torch.allclose(g1 @ g1.T, g2 @ g2.T, atol=1e-4)

@@ -202,10 +202,13 @@ class CovarianceFit:
     def lda_logits(self, coords: tuple[torch.Tensor, torch.Tensor | None], alpha: float
                    ) -> torch.Tensor:
         """LDA logits z Sigma_a^-1 mu_c - mu_c Sigma_a^-1 mu_c / 2 + log prior_c: (N, C)."""
-        coef, bias = self._lda64(alpha)
+        lam, lam_perp = self.shrunk(alpha)
+        pm, cm = self.coords(self.means)
         p, c = coords
-        z = p @ self.evecs.T + (0 if c is None else c)
-        return z @ coef.T + bias
+        logits = (p / lam) @ pm.T - 0.5 * (pm * pm / lam).sum(1) + self.log_prior
+        if c is not None:
+            logits = logits + (c @ cm.T - 0.5 * (cm * cm).sum(1)) / lam_perp
+        return logits
 
     def _lda64(self, alpha: float) -> tuple[torch.Tensor, torch.Tensor]:
         lam, lam_perp = self.shrunk(alpha)
