@@ -36,30 +36,38 @@ def main() -> None:
     p.add_argument('--views', type=int, default=4)
     p.add_argument('--subset', type=int, default=3, help='every n-th train object')
     p.add_argument('--folds', type=int, default=5)
-    p.add_argument('--full-cached', nargs='*', default=['yaw_align'],
-                   help='configs whose features are cached for the whole train split '
-                        '(the subset rows are taken from them)')
+    p.add_argument('--cached-subset', nargs=2, action='append', metavar=('CONFIG', 'N'),
+                   default=[], help='features of CONFIG are cached for every N-th object '
+                                    '(default 1: all); the study takes its rows from them')
+    p.add_argument('--configs', nargs='+', default=list(CONFIGS), choices=list(CONFIGS))
+    p.add_argument('--dims', type=int, default=224, help="PCA width (the shipped bank's)")
+    p.add_argument('--alphas', type=float, nargs='*', default=[0.1],
+                   help='whitening / LDA shrinkages (none: plain kernel vote)')
+    p.add_argument('--weights', type=float, nargs='*', default=[0.1, 0.3],
+                   help='LDA fusion weights')
     args = p.parse_args()
     train = open_dataset(args.dataset, split='train')
     sources = np.arange(0, len(train), args.subset)
     results = {}
-    for name, align in CONFIGS.items():
+    for name in args.configs:
+        align = CONFIGS[name]
         enc = make_encoder(EncoderConfig(yaw_align=align))
-        if name in args.full_cached:
-            ds = ViewsDataset(train, args.views, 0, include_full=True, random_yaw=True)
-            feats = encode_dataset(ds, enc, cache_dir=Path(args.cache))
-            rows = np.isin(ds.groups, sources)
-            feats, labels, groups, view = (feats[rows], ds.labels[rows], ds.groups[rows],
-                                           ds.view_index[rows])
-        else:
-            ds = ViewsDataset(train, args.views, 0, include_full=True, random_yaw=True,
-                              sources=sources)
-            feats = encode_dataset(ds, enc, cache_dir=Path(args.cache))
-            labels, groups, view = ds.labels, ds.groups, ds.view_index
+        every = int(dict(args.cached_subset).get(name, 1))
+        # Views depend only on (seed, source object): a subset's rows equal the full set's.
+        ds = ViewsDataset(train, args.views, 0, include_full=True, random_yaw=True,
+                          sources=None if every == 1 else np.arange(0, len(train), every))
+        feats = encode_dataset(ds, enc, cache_dir=Path(args.cache))
+        rows = np.isin(ds.groups, sources)
+        feats, labels, groups, view = (feats[rows], ds.labels[rows], ds.groups[rows],
+                                       ds.view_index[rows])
         sel = select(feats, labels, len(train.class_names), standardize_options=('standardize',),
-                     folds=args.folds, groups=groups)
+                     dims_options=(args.dims,), folds=args.folds, groups=groups,
+                     alphas=tuple(args.alphas), weights=tuple(args.weights),
+                     whiten_options=(True,) if args.alphas else (False,))
         ok = sel.heldout_correct
         results[name] = {'entries': int(len(labels)), 'gamma': sel.gamma,
+                         'whiten_alpha': sel.alpha, 'lda_alpha': sel.lda_alpha,
+                         'weight': sel.fusion_weight,
                          'cv_all': float(ok.mean()), 'cv_views': float(ok[view >= 0].mean()),
                          'cv_complete': float(ok[view < 0].mean())}
         print(name, json.dumps(results[name]), flush=True)

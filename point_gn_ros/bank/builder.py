@@ -66,19 +66,24 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                groups: np.ndarray | None = None,
                alphas: tuple[float, ...] = DEFAULT_ALPHAS,
                weights: tuple[float, ...] = DEFAULT_WEIGHTS,
-               lda_alphas: tuple[float, ...] = DEFAULT_LDA_ALPHAS) -> FeatureBank:
+               lda_alphas: tuple[float, ...] = DEFAULT_LDA_ALPHAS,
+               cv_subset: np.ndarray | None = None) -> FeatureBank:
     """Encode `dataset`, choose transform and head by k-fold CV on it, return the bank.
 
     groups: (N,) int or None; entries sharing a group (an object and its simulated views)
     stay in one CV fold. alphas=() gives the plain kernel vote (format-1 behaviour).
+    cv_subset: (M,) int64 entry indices the CV runs on (default all; CV cost grows with the
+    square of the bank): the knobs chosen there are then fitted on every entry.
     """
     encoder = encoder or make_encoder(cfg, device)
     if feats is None:
         feats = encode_dataset(dataset, encoder, progress=progress, cache_dir=cache_dir)
     labels = np.asarray(dataset.labels, dtype=np.int64)
-    sel = select(feats, labels, len(dataset.class_names), gammas, standardize_options,
-                 dims_options, folds, groups=groups, alphas=alphas, weights=weights,
-                 lda_alphas=lda_alphas)
+    cv = np.arange(len(labels)) if cv_subset is None else np.asarray(cv_subset, dtype=np.int64)
+    sel = select(feats[torch.from_numpy(cv)], labels[cv], len(dataset.class_names), gammas,
+                 standardize_options, dims_options, folds,
+                 groups=None if groups is None else np.asarray(groups)[cv], alphas=alphas,
+                 weights=weights, lda_alphas=lda_alphas)
     tf, head, vote_feats = fit_selected(feats, labels, len(dataset.class_names), sel)
     counts = Counter(labels.tolist())
     meta = {
@@ -90,7 +95,8 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
         },
         'selection': {'standardize': sel.standardize, 'dims': sel.dims, 'gamma': sel.gamma,
                       'cv_folds': folds, 'cv_accuracy': sel.cv_accuracy,
-                      'cv_grouped': groups is not None, 'table': sel.table,
+                      'cv_grouped': groups is not None, 'cv_entries': int(len(cv)),
+                      'table': sel.table,
                       'grid': {'gammas': list(gammas),
                                'standardize': list(standardize_options),
                                'dims': list(dims_options), 'alphas': list(alphas),

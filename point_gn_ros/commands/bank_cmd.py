@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'object and its views together. Without --yaw-align this is yaw '
                         'augmentation (no canonical frame)')
     b.add_argument('--view-seed', type=int, default=0, help='seed of the --views scans')
+    b.add_argument('--cv-every', type=int, default=1, metavar='N',
+                   help='cross-validate on every N-th object (with its views) only, then fit '
+                        'the chosen knobs on all (CV cost grows with the square of the bank)')
     b.add_argument('--dtype', choices=('float16', 'float32'), default='float16',
                    help='stored feature precision (default float16)')
     b.add_argument('--dims', type=int, nargs='+', default=None,
@@ -91,11 +94,18 @@ def _build(args: argparse.Namespace) -> int:
         print(f'+ {args.views} simulated views per object: {len(ds)} entries '
               f'({views_meta["rotation"]})')
     alphas = () if args.vote_only else tuple(args.alphas or DEFAULT_ALPHAS)
+    import numpy as np
+
+    cv_subset = None
+    if args.cv_every > 1:
+        source = groups if groups is not None else np.arange(len(ds))
+        cv_subset = np.flatnonzero(source % args.cv_every == 0)
     bank = build_bank(ds, cfg, args.device, standardize_options=tuple(args.standardize),
                       dims_options=tuple(dims), folds=args.folds,
                       false_reject_rate=args.false_reject_rate,
                       cache_dir=Path(args.cache) if args.cache else None, alphas=alphas,
-                      weights=tuple(args.weights or DEFAULT_WEIGHTS), groups=groups)
+                      weights=tuple(args.weights or DEFAULT_WEIGHTS), groups=groups,
+                      cv_subset=cv_subset)
     if views_meta is not None:
         bank.meta['views'] = views_meta
     path = bank.save(args.output, dtype=args.dtype)
