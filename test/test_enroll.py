@@ -302,3 +302,15 @@ def test_head_min_examples_gate(head_bank) -> None:  # noqa: ANN001
                                                                              gamma='keep'))
     view = active_view(res.bank, 3)
     assert (Classifier(view).classify(_queries(centre, 8, 2)).labels != 5).all()
+
+
+def test_head_recalibrated_at_kept_knobs(head_bank) -> None:  # noqa: ANN001
+    bf, _ = head_bank
+    centre = torch.randn(D, generator=torch.Generator().manual_seed(80))
+    res = add_examples(bf, _queries(centre, 6, 1), 'new',
+                       policy=RefitPolicy(gamma='keep', calibration='recalibrate', folds=3))
+    assert res.bank.gamma == bf.bank.gamma
+    assert torch.equal(res.bank.head.whiten, bf.bank.head.whiten)
+    cal = res.bank.meta['unknown_calibration']
+    assert cal['measure'] == 'novelty' and cal['threshold'] != 0.3
+    assert 'recalibrated' in res.bank.meta['refit']['calibration_reason']

@@ -118,6 +118,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy()) -> tuple[Featu
         sel = select(z_view, np.asarray(compact), len(present),
                      tuple(grid.get('gammas') or DEFAULT_GAMMAS), ('none',), (None,), folds,
                      alphas=tuple(grid.get('alphas') or ()),
+                     lda_alphas=tuple(grid.get('lda_alphas') or grid.get('alphas') or ()),
                      weights=tuple(grid.get('weights') or (0.0,)))
         gamma, gamma_reason = float(sel.gamma), (
             f'{sel.folds_used}-fold CV on the bank: {100 * sel.cv_accuracy:.1f} %')
@@ -195,11 +196,12 @@ def _recalibrate(meta: dict, bank: FeatureBank, view: FeatureBank, compact: torc
     if sel is None:      # held-out scores with every knob pinned at its kept value
         hm = meta.get('head', {})
         z_view = vote_to_z(view.features, bank.head) if z_view is None else z_view
-        alphas = tuple({a for a in (hm.get('alpha'), hm.get('lda_alpha')) if a is not None})
+        alpha, lda_alpha = hm.get('alpha'), hm.get('lda_alpha')
         w = float(head.fusion_weight) if head is not None else 0.0
         sel = select(z_view, np.asarray(compact), len(present), (gamma,), ('none',), (None,),
-                     folds, alphas=alphas, weights=(w,),
-                     whiten_options=(head is not None and head.whiten is not None,))
+                     folds, alphas=() if alpha is None else (float(alpha),),
+                     lda_alphas=() if lda_alpha is None or w == 0 else (float(lda_alpha),),
+                     weights=(w,), whiten_options=(alpha is not None,))
     rate = float((calib or {}).get('false_reject_rate', 0.05))
     # The measure the bank already thresholds (format-1 banks: the vote share).
     measure = calib.get('measure', 'probability') if calib else (
