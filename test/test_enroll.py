@@ -314,3 +314,35 @@ def test_head_recalibrated_at_kept_knobs(head_bank) -> None:  # noqa: ANN001
     cal = res.bank.meta['unknown_calibration']
     assert cal['measure'] == 'novelty' and cal['threshold'] != 0.3
     assert 'recalibrated' in res.bank.meta['refit']['calibration_reason']
+
+
+def test_incremental_lda_refit_matches_a_full_refit() -> None:
+    """ScatterStats updates give the LDA a full pass over the bank gives (bank > dims)."""
+    from point_gn_ros.bank.head import fit_head
+
+    feats, labels, centres = _clusters(4, 20, seed=6, spread=0.8)
+    tf = FeatureTransform.fit(feats, 'standardize', 16)
+    z = tf(feats)
+    head = fit_head(z, labels, 4, 20.0, alpha=0.2, lda_alpha=0.05, fusion_weight=0.5)
+    meta = {'head': {'alpha': 0.2, 'lda_alpha': 0.05, 'fusion_weight': 0.5,
+                     'temperature': 1.0}}
+    bank = FeatureBank(features=head.vote_space(z), labels=labels,
+                       class_names=[f'c{i}' for i in range(4)], config=EncoderConfig(),
+                       transform=tf, gamma=20.0, meta=meta, head=head)
+    plain = BankFile.of(bank, 'float32')
+    fast = plain.with_stats()
+    assert fast.stats is not None and plain.stats is None
+    new = torch.randn(D, generator=torch.Generator().manual_seed(81))
+    policy = RefitPolicy(gamma='keep')
+    steps = [lambda b: add_examples(b, _queries(new, 5, 1), 'new', policy=policy),
+             lambda b: add_examples(b, _queries(centres[1], 3, 2), 'c1', policy=policy),
+             lambda b: remove_class(b, 'c2', policy=policy)]
+    for step in steps:
+        plain, fast = step(plain).file, step(fast).file
+        assert fast.stats is not None
+        for a, b in ((plain.bank.head.lda_coef, fast.bank.head.lda_coef),
+                     (plain.bank.head.lda_bias, fast.bank.head.lda_bias)):
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+    q = torch.cat([_queries(new, 6, 3), _queries(centres[3], 6, 4)])
+    assert np.array_equal(Classifier(plain.bank).classify(q).labels,
+                          Classifier(fast.bank).classify(q).labels)

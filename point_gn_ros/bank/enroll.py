@@ -27,8 +27,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, active_view,
-                                     refit)
+from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, ScatterStats,
+                                     active_view, refit, vote_to_z)
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.errors import PointGNError
 
@@ -121,6 +121,8 @@ class BankFile:
 
     bank: FeatureBank
     stored: np.ndarray
+    # Scatter statistics of the rows for a cheap LDA refit (not saved; see `with_stats`).
+    stats: ScatterStats | None = field(default=None, compare=False, repr=False)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str] | None = None,
@@ -138,6 +140,14 @@ class BankFile:
         stored = bank.features.cpu().numpy().astype(dtype)
         meta = dict(bank.meta, stored_dtype=dtype)
         return cls(replace(bank, features=_from_stored(stored), meta=meta), stored)
+
+    def with_stats(self) -> 'BankFile':
+        """The same, with ScatterStats when the bank's head has an LDA part (one pass)."""
+        head = self.bank.head
+        if self.stats is not None or head is None or head.lda_coef is None:
+            return self
+        z = vote_to_z(self.bank.features, head)
+        return replace(self, stats=ScatterStats.of(z, self.bank.labels, self.bank.num_classes))
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Atomic write of exactly this bank (see `save_atomic`)."""
@@ -175,11 +185,13 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
     feats = torch.cat([bank.features, new])
     labels = torch.cat([bank.labels, torch.full((len(new),), cid, dtype=torch.int64)])
     meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups)
+    # z of the new rows as a full refit would recover them from the stored values.
+    stats = None if bf.stats is None else bf.stats.add(vote_to_z(new, bank.head), cid)
     out, moved = refit(replace(bank, features=feats, labels=labels, class_names=names,
-                               meta=meta, path=None), policy)
+                               meta=meta, path=None), policy, stats)
     stored = np.concatenate([bf.stored, stored_new])
-    return EnrollResult(_restore(out, stored, moved), 'add', class_name, len(new), new_class,
-                        tuple(dups), n_dups, out.meta['refit'])
+    return EnrollResult(_restore(out, stored, moved, stats), 'add', class_name, len(new),
+                        new_class, tuple(dups), n_dups, out.meta['refit'])
 
 
 def remove_class(bf: BankFile, class_name: str, source: str = 'api',
@@ -199,10 +211,12 @@ def remove_class(bf: BankFile, class_name: str, source: str = 'api',
     names = [n for n in bank.class_names if n != class_name]
     removed = int((~keep).sum())
     meta = _log(bank, 'remove', class_name, removed, source, when)
+    stats = None if bf.stats is None else bf.stats.remove(
+        vote_to_z(bank.features[~keep], bank.head), cid)
     out, moved = refit(replace(bank, features=bank.features[keep], labels=labels,
-                               class_names=names, meta=meta, path=None), policy)
-    return EnrollResult(_restore(out, bf.stored[keep.numpy()], moved), 'remove', class_name,
-                        removed, False, (), 0, out.meta['refit'])
+                               class_names=names, meta=meta, path=None), policy, stats)
+    return EnrollResult(_restore(out, bf.stored[keep.numpy()], moved, stats), 'remove',
+                        class_name, removed, False, (), 0, out.meta['refit'])
 
 
 def near_duplicates(new: torch.Tensor, bank: FeatureBank, class_id: int,
@@ -261,12 +275,16 @@ def save_atomic(bf: BankFile, path: str | os.PathLike[str]) -> Path:
 # ------------------------------------------------------------------------------ helpers
 
 
-def _restore(bank: FeatureBank, stored: np.ndarray, moved: bool) -> BankFile:
-    """The BankFile of a refitted bank: stored values re-derived only if the rows moved."""
+def _restore(bank: FeatureBank, stored: np.ndarray, moved: bool,
+             stats: ScatterStats | None) -> BankFile:
+    """The BankFile of a refitted bank: stored values re-derived only if the rows moved.
+
+    The scatter statistics live in z space, which re-whitening does not change.
+    """
     if not moved:          # rows already are normalize(stored), row by row
-        return BankFile(bank, stored)
+        return BankFile(bank, stored, stats)
     stored = bank.features.numpy().astype(stored.dtype)
-    return BankFile(replace(bank, features=_from_stored(stored)), stored)
+    return BankFile(replace(bank, features=_from_stored(stored)), stored, stats)
 
 
 def _from_stored(stored: np.ndarray) -> torch.Tensor:

@@ -66,7 +66,8 @@ class LiveBank(Generic[Model]):
         self.policy = policy or RefitPolicy()
         self._make_model = make_model
         self._lock = threading.Lock()
-        self._snap = self._snapshot(file)
+        # One pass over the bank now, so that every enrollment's LDA refit is cheap.
+        self._snap = self._snapshot(file.with_stats())
 
     def current(self) -> Snapshot[Model]:
         """The latest published version (never blocks: a reference read)."""

@@ -35,6 +35,75 @@ GammaPolicy = Literal['keep', 'cv', 'auto']
 CalibrationPolicy = Literal['keep', 'recalibrate', 'auto']
 
 
+@dataclass(frozen=True)
+class ScatterStats:
+    """Sufficient statistics of the bank's rows z for the LDA: updated per enrollment.
+
+    gram (d, d) float64 = sum_i z_i z_i^T over every row; sums (C, d) float64 per class;
+    counts (C,) float64. The pooled within-class scatter of the classes S is
+    gram - sum_c sums_c sums_c^T / counts_c, so adding examples costs (m, d) x (d, m) and
+    one (d, d) eigen-decomposition instead of a pass over the whole bank.
+    """
+
+    gram: torch.Tensor
+    sums: torch.Tensor
+    counts: torch.Tensor
+
+    @classmethod
+    def of(cls, z: torch.Tensor, labels: torch.Tensor, num_classes: int) -> 'ScatterStats':
+        z64 = z.double()
+        sums = torch.zeros(num_classes, z.shape[1], dtype=torch.float64)
+        sums.index_add_(0, labels, z64)
+        counts = torch.bincount(labels, minlength=num_classes).double()
+        return cls(z64.T @ z64, sums, counts)
+
+    def add(self, z: torch.Tensor, class_id: int) -> 'ScatterStats':
+        """Rows z (m, d) joining class `class_id` (== C: a new class) -> new stats."""
+        z64 = z.double()
+        sums, counts = self.sums, self.counts
+        if class_id == len(counts):
+            sums = torch.cat([sums, torch.zeros(1, sums.shape[1], dtype=torch.float64)])
+            counts = torch.cat([counts, torch.zeros(1, dtype=torch.float64)])
+        sums, counts = sums.clone(), counts.clone()
+        sums[class_id] += z64.sum(0)
+        counts[class_id] += len(z64)
+        return ScatterStats(self.gram + z64.T @ z64, sums, counts)
+
+    def remove(self, z: torch.Tensor, class_id: int) -> 'ScatterStats':
+        """Every row z (m, d) of class `class_id` leaves; later class ids shift down."""
+        z64 = z.double()
+        keep = torch.arange(len(self.counts)) != class_id
+        return ScatterStats(self.gram - z64.T @ z64, self.sums[keep], self.counts[keep])
+
+    def lda(self, present: np.ndarray, alpha: float
+            ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """LDA of the classes `present` under Sigma_alpha (as CovarianceFit.lda), or None.
+
+        -> coef (P, d) float32, bias (P,) float32. Solved with one Cholesky factorisation
+        of Sigma_alpha = (1 - alpha) Sigma + alpha tr(Sigma)/d I (no eigen-decomposition).
+        None when the stats cannot give it exactly (rows of other classes in the gram, fewer
+        rows than dimensions: CovarianceFit.fit's low-rank path) or Sigma_alpha is singular.
+        """
+        idx = torch.from_numpy(present)
+        n = self.counts[idx]
+        others = torch.ones(len(self.counts), dtype=torch.bool)
+        others[idx] = False
+        total, d = float(n.sum()), self.gram.shape[0]
+        if bool((self.counts[others] > 0).any()) or total < d:
+            return None
+        means = self.sums[idx] / n[:, None]
+        scatter = self.gram - (self.sums[idx].T / n) @ self.sums[idx]
+        cov = (scatter + scatter.T) / (2 * max(1.0, total - len(present)))
+        tau = float(torch.diagonal(cov).sum()) / d
+        shrunk = (1.0 - alpha) * cov + alpha * tau * torch.eye(d, dtype=torch.float64)
+        chol, info = torch.linalg.cholesky_ex(shrunk)
+        if int(info) != 0:
+            return None
+        coef = torch.cholesky_solve(means.T, chol).T                     # Sigma_a^-1 mu_c
+        bias = -0.5 * (means * coef).sum(1) + (n / total).log()
+        return coef.float(), bias.float()
+
+
 class RefitError(PointGNError):
     """No class of the bank can be predicted under the policy."""
 
@@ -85,7 +154,8 @@ def active_view(bank: FeatureBank, min_examples: int) -> FeatureBank:
     return replace(bank, features=bank.features[keep], labels=bank.labels[keep])
 
 
-def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy()) -> tuple[FeatureBank, bool]:
+def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
+          stats: ScatterStats | None = None) -> tuple[FeatureBank, bool]:
     """Re-decide what depends on the bank's entries -> (new bank, whether rows were re-whitened).
 
     The single hook where a bank's fitted parts are refreshed after its entries changed
@@ -97,7 +167,8 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy()) -> tuple[Featu
       so stored rows do not move); after CV, the whole head, and every row is re-whitened;
     - the open-set thresholds are recalibrated on held-out folds or kept (policy.calibration).
     Classes below policy.min_examples take no part and can never win (see `active_view`).
-    The feature transform is always kept (see the module docstring).
+    The feature transform is always kept (see the module docstring). stats: the bank's
+    ScatterStats (same rows), which make the kept-knobs LDA refit cheap.
     """
     head = bank.head
     view = active_view(bank, policy.min_examples)
@@ -134,9 +205,12 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy()) -> tuple[Featu
         new_head = head
         if head is not None and head.lda_coef is not None:
             # Closed-form LDA refit with the CV-chosen shrinkage kept.
-            z_view = vote_to_z(view.features, head)
-            fit = CovarianceFit.fit(z_view, compact, len(present))
-            coef, bias = fit.lda(float(meta.get('head', {}).get('lda_alpha') or 0.0))
+            lda_alpha = float(meta.get('head', {}).get('lda_alpha') or 0.0)
+            lda = stats.lda(present, lda_alpha) if stats is not None else None
+            if lda is None:
+                z_view = vote_to_z(view.features, head)
+                lda = CovarianceFit.fit(z_view, compact, len(present)).lda(lda_alpha)
+            coef, bias = lda
             new_head = replace(head, lda_coef=coef, lda_bias=bias)
     if new_head is not None:
         new_head = _expand_lda(replace(new_head, gamma=gamma), present, bank.num_classes)
