@@ -46,11 +46,12 @@ def test_bank_build_and_info(bank: Path, capsys: pytest.CaptureFixture) -> None:
     assert meta['provenance']['count'] == 24 and meta['provenance']['split'] == 'train'
     assert meta['selection']['cv_folds'] == 2
     assert meta['format_version'] == 2 and meta['head']['folds_used'] == 2
-    assert meta['unknown_calibration']['measure'] == 'novelty'
+    assert meta['unknown_calibration']['measure'] == 'probability'
+    assert meta['novelty_calibration']['measure'] == 'novelty'
     assert main(['bank', 'info', str(bank)]) == 0
     out = capsys.readouterr().out
     assert 'head: kernel vote on' in out and 'temperature' in out
-    assert 'plain kernel vote on the same folds' in out and 'novelty above' in out
+    assert 'plain kernel vote on the same folds' in out and 'probability below' in out
 
 
 def test_eval_open_set(tree: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -104,9 +104,12 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
         'head': sel.head_meta(),
     }
     if sel.heldout_novelty is not None:
-        meta['unknown_calibration'] = calibrate_novelty(sel.heldout_novelty, false_reject_rate)
-        meta['probability_calibration'] = calibrate_unknown(sel.heldout_scores,
-                                                            false_reject_rate)
+        # The default unknown rule thresholds the calibrated top-1 probability: on a pseudo
+        # open set of the train split it separated unseen classes better than the novelty
+        # (AUROC 0.850 vs 0.760, scripts/novelty_study.py). Novelty's own threshold is kept
+        # for Classifier(novelty_threshold=...).
+        meta['unknown_calibration'] = calibrate_unknown(sel.heldout_scores, false_reject_rate)
+        meta['novelty_calibration'] = calibrate_novelty(sel.heldout_novelty, false_reject_rate)
     return FeatureBank(features=vote_feats, labels=torch.from_numpy(labels),
                        class_names=list(dataset.class_names), config=encoder.cfg, transform=tf,
                        gamma=sel.gamma, meta=meta, head=head)

@@ -83,8 +83,9 @@ class Classifier:
     Unknown rule (label -1), exactly:
       unknown_threshold None or 0   off
       unknown_threshold > 0         top-1 calibrated probability < unknown_threshold
-      unknown_threshold < 0         the bank's calibration: novelty > its threshold
-                                    (format-1 banks: top-1 vote share < its threshold)
+      unknown_threshold < 0         the bank's calibration (`unknown_calibration`): top-1
+                                    calibrated probability < its threshold (format 1: top-1
+                                    vote share), or novelty > it if its measure is novelty
       novelty_threshold > 0         novelty > novelty_threshold (also combinable)
     """
 

@@ -143,6 +143,10 @@ def describe_selection(meta: dict) -> list[str]:
             lines.append(f'  CV fallback: {head["fallback"]}')
     elif meta.get('format_version', 2) == 1:
         lines.append('  head: none (format 1: plain kernel vote; rebuild for the head)')
+    nov = meta.get('novelty_calibration')
+    if nov:
+        lines.append(f'  novelty threshold at the same false-reject rate: {nov["threshold"]:.4f} '
+                     '(Classifier novelty_threshold)')
     cal = meta.get('unknown_calibration')
     if cal:
         what = ('novelty above' if cal.get('measure') == 'novelty'
