@@ -277,14 +277,19 @@ def _recalibrate(meta: dict, bank: FeatureBank, view: FeatureBank, compact: torc
                      lda_alphas=() if lda_alpha is None or w == 0 else (float(lda_alpha),),
                      weights=(w,), whiten_options=(alpha is not None,))
     rate = float((calib or {}).get('false_reject_rate', 0.05))
-    # The measure the bank already thresholds (format-1 banks: the vote share).
-    measure = calib.get('measure', 'probability') if calib else (
-        'novelty' if head is not None else 'probability')
-    if sel.heldout_novelty is not None and measure == 'novelty':
-        meta['unknown_calibration'] = calibrate_novelty(sel.heldout_novelty, rate)
-        meta['probability_calibration'] = calibrate_unknown(sel.heldout_scores, rate)
+    # Whatever measure each stored rule thresholds stays the same (the unknown rule is the
+    # calibrated probability by default; older banks thresholded novelty there).
+    novelty = calibrate_novelty(sel.heldout_novelty, rate) \
+        if sel.heldout_novelty is not None else None
+    probability = calibrate_unknown(sel.heldout_scores, rate)
+    if (calib or {}).get('measure') == 'novelty' and novelty is not None:
+        meta['unknown_calibration'] = novelty
     else:
-        meta['unknown_calibration'] = calibrate_unknown(sel.heldout_scores, rate)
+        meta['unknown_calibration'] = probability
+    for key, value in (('novelty_calibration', novelty),
+                       ('probability_calibration', probability)):
+        if key in meta and value is not None:
+            meta[key] = value
     return f'recalibrated ({100 * rate:g} % false rejects on held-out folds)'
 
 
