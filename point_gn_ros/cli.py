@@ -14,6 +14,7 @@ import sys
 # Modules that register sub-commands, in the order they appear in --help.
 COMMAND_MODULES = (
     'point_gn_ros.commands.bank_cmd',
+    'point_gn_ros.commands.enroll_cmd',      # bank add|remove: after bank_cmd
     'point_gn_ros.commands.eval_cmd',
     'point_gn_ros.commands.classify_cmd',
     'point_gn_ros.commands.bench_cmd',

@@ -67,6 +67,8 @@ def main() -> None:
     ap.add_argument('--cache', default='cache')
     ap.add_argument('--dims', type=int, nargs='+', default=[0])
     ap.add_argument('--standardize', nargs='+', default=['standardize'])
+    ap.add_argument('--lda-alphas', type=float, nargs='+', default=None,
+                    help='LDA shrinkage grid (default: the builder default)')
     ap.add_argument('--sigma', type=float, default=None, help='encoder sigma (default 0.4)')
     ap.add_argument('--k', type=int, default=None, help='encoder neighbours (default 120)')
     ap.add_argument('--yaw-align', action='store_true', help='yaw-canonical encoder config')
@@ -113,8 +115,9 @@ def main() -> None:
             Path(args.out).write_text(json.dumps(result, indent=2))
         return
     t0 = time.perf_counter()
+    extra = {'lda_alphas': tuple(args.lda_alphas)} if args.lda_alphas else {}
     bank = build_bank(train, encoder=enc, feats=f_train, progress=False,
-                      standardize_options=tuple(args.standardize), dims_options=dims)
+                      standardize_options=tuple(args.standardize), dims_options=dims, **extra)
     sel, head = bank.meta['selection'], bank.meta['head']
     print(f'CV on train took {time.perf_counter() - t0:.0f} s: {json.dumps(head)}; '
           f'standardize={sel["standardize"]} dims={sel["dims"]} gamma={sel["gamma"]:g} '

@@ -128,10 +128,11 @@ def test_config_yaml_lists_every_parameter_with_its_default() -> None:
     yaml = pytest.importorskip('yaml')   # comes with the ROS Python packages
 
     from point_gn_ros.node.classifier_node import PARAMETERS
+    from point_gn_ros.node.enrollment import ENROLL_PARAMETERS
     params = yaml.safe_load((REPO / 'config' / 'classifier.yaml').read_text())
     values = params['/**']['ros__parameters']
-    assert set(values) == set(PARAMETERS)
-    for name, (default, description, _) in PARAMETERS.items():
+    assert set(values) == set(PARAMETERS) | set(ENROLL_PARAMETERS)
+    for name, (default, description, _) in (PARAMETERS | ENROLL_PARAMETERS).items():
         assert values[name] == default, name
         assert description
 

@@ -30,6 +30,11 @@ _MAX_BLOCK = 1 << 24
 # exp() of a kernel logit this far below the best entry underflows float32: floor there.
 _TINY = float(torch.finfo(torch.float32).tiny)
 _ABSENT_LOG_PRIOR = -1e4
+# Kernel logits are floored here (relative to the best entry) before exp(): below it
+# exp() gives float32 denormals, which are many times slower to add, and the mass is
+# negligible beside the best entry's 1.
+_LOGIT_FLOOR = -80.0
+_EXP_FLOOR = float(np.exp(_LOGIT_FLOOR))
 
 
 @dataclass
@@ -96,13 +101,13 @@ def log_vote_shares(sims: torch.Tensor, bank_labels: torch.Tensor, num_classes: 
     """Log kernel-vote share of each class.
 
     sims: (B, N) cosine to each bank entry; bank_labels: (N,) int64 -> (B, C) float32,
-    logsumexp over classes = 0. A class with no mass within float32 range of the best
-    entry gets log(tiny) (about -87) rather than -inf; one absent from the bank, -inf.
+    logsumexp over classes = 0. Each entry counts at least exp(-80) of the best entry's
+    vote (no float32 denormals); a class absent from the bank gets -inf.
     """
     logits = (sims - 1.0) * gamma
     top = logits.max(dim=1, keepdim=True).values
     votes = torch.zeros(sims.shape[0], num_classes, dtype=logits.dtype, device=logits.device)
-    votes.index_add_(1, bank_labels, (logits - top).exp_())
+    votes.index_add_(1, bank_labels, (logits - top).clamp_min_(_LOGIT_FLOOR).exp_())
     present = torch.zeros(num_classes, dtype=torch.bool, device=sims.device)
     present[bank_labels] = True
     logv = votes.clamp_min(_TINY).log().masked_fill(~present, -float('inf'))
@@ -122,9 +127,9 @@ def log_vote_shares_grid(sims: torch.Tensor, bank_labels: torch.Tensor, num_clas
     out, e, prev = [], None, None
     for g in gammas:
         if e is not None and prev is not None and abs(g - 2 * prev) < 1e-9 * g:
-            e.square_()
+            e.square_().clamp_min_(_EXP_FLOOR)
         else:
-            e = (gap * g).exp_()
+            e = (gap * g).clamp_min_(_LOGIT_FLOOR).exp_()
         prev = g
         votes = torch.zeros(sims.shape[0], num_classes, dtype=sims.dtype, device=sims.device)
         votes.index_add_(1, bank_labels, e)

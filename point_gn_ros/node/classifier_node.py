@@ -42,7 +42,7 @@ from typing import Any
 
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, ManagedEntity, TransitionCallbackReturn
 import rclpy.logging
 from rclpy.parameter import Parameter
@@ -111,6 +111,7 @@ class ClassifierNode(LifecycleNode):
         self._diagnostic_sources: list[Callable[[str], Any]] = []
         for make in extensions:
             self.add_managed_entity(make(self))
+        self._warn_unknown_overrides()          # after the extensions declared theirs
 
     @property
     def autostart(self) -> bool:
@@ -121,7 +122,11 @@ class ClassifierNode(LifecycleNode):
     def _declare_parameters(self) -> None:
         for name, (default, desc) in descriptors().items():
             self.declare_parameter(name, default, desc)
-        for warning in unknown_override_warnings(self._parameter_overrides):
+
+    def _warn_unknown_overrides(self) -> None:
+        """Misspelt overrides, warned once the extensions have declared their parameters."""
+        undeclared = [n for n in self._parameter_overrides if not self.has_parameter(n)]
+        for warning in unknown_override_warnings(undeclared):
             self.get_logger().warning(warning)
 
     def _values(self) -> dict[str, Any]:
@@ -448,12 +453,15 @@ def main(args: list[str] | None = None) -> int:
     node: ClassifierNode | None = None
     code = 0
     try:
-        node = ClassifierNode()
+        from point_gn_ros.node.enrollment import Enrollment
+        node = ClassifierNode(extensions=[Enrollment])
         if node.autostart:
             autostart(node)
         else:
             node.get_logger().info('waiting for a lifecycle manager (autostart is false)')
-        executor = SingleThreadedExecutor()
+        # Two threads: the enrollment services (own callback group) may wait for a save or
+        # a refit without holding up the input callbacks.
+        executor = MultiThreadedExecutor(num_threads=2)
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

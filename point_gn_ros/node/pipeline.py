@@ -89,6 +89,10 @@ class Pipeline:
         self._unsettled: set[int] = set()   # ids of this batch's messages not yet settled
         self._pending: tuple[Settings, Any] | None = None
         self._pending_lock = threading.Lock()
+        # Optional worker hooks (node/enrollment.py): observe(jobs) sees each prepared
+        # micro-batch; between_batches() runs after each (and when idle), returns "more to do".
+        self.observe: Callable[[Sequence[Job]], None] | None = None
+        self.between_batches: Callable[[], bool] | None = None
         self.update(settings, recognizer)
         self._apply_pending()
 
@@ -126,12 +130,12 @@ class Pipeline:
         alive(): False once the middleware is shut down (a failure then ends the loop
         quietly instead of being reported).
         """
+        busy = False
         while not self._stop.is_set():
-            items = queue.take(self.settings.max_batch, timeout=0.5)
-            if not items:
-                continue
+            items = queue.take(self.settings.max_batch, timeout=0.0 if busy else 0.5)
             try:
-                self.process(items, publish)
+                if items:
+                    self.process(items, publish)
             except Exception as exc:  # noqa: BLE001 - the node must outlive any one batch
                 if self._stop.is_set() or not alive():
                     return
@@ -141,6 +145,7 @@ class Pipeline:
                         self.fail(item, 'internal', exc)
             finally:
                 self._unsettled.clear()
+            busy = self.between_batches is not None and self.between_batches()
 
     def process(self, items: Sequence[QueueItem[Any]], publish: Callable[[Answer], None]
                 ) -> None:
@@ -160,6 +165,11 @@ class Pipeline:
                 continue
             if job is not None:
                 jobs.append(job)
+        if self.observe is not None:
+            try:
+                self.observe(jobs)
+            except Exception as exc:  # noqa: BLE001 - capture must not cost answers
+                self._warn(('observe',), f'enrollment capture failed: {exc!r}')
         if not jobs:
             return
         try:

@@ -1,0 +1,311 @@
+"""Online enrollment: add examples to a bank, remove a class, refit what depends on the bank.
+
+Every operation is copy-on-write: it returns a NEW FeatureBank and never mutates the one it was
+given, so a reader holding the old bank (the node's worker, mid micro-batch) keeps computing
+with one consistent version. `LiveBank` (bank/live.py) serialises writers and swaps versions.
+
+The bank stores its rows in the vote's space (bank/store.py), so new examples go through the
+bank's own transform (and head whitening); what depends on the entries is refreshed by
+`refit()` (bank/refit.py), the single place that knows which knobs depend on them.
+
+Metadata added (JSON, in the bank file):
+  bank_version   int, +1 per add/remove (0 = as built)
+  enrollments    list of {version, action, class, count, time, source, near_duplicates}
+  refit          how gamma / calibration were last decided {version, gamma, calibration, ...}
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from datetime import datetime, UTC
+import copy
+import os
+import threading
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, ScatterStats,
+                                     active_view, refit, vote_to_z)
+from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.errors import PointGNError
+
+# At most this many near-duplicate pairs are listed (the count is always exact).
+_MAX_LISTED = 20
+
+class EnrollError(PointGNError):
+    """An enrollment request the bank cannot take (unknown class, wrong feature size...)."""
+
+
+__all__ = ['BankFile', 'EnrollError', 'EnrollResult', 'NearDuplicate', 'RefitError',
+           'RefitPolicy', 'active_view', 'add_examples', 'bank_version', 'class_counts',
+           'near_duplicates', 'predictable', 'refit', 'remove_class', 'save_atomic']
+
+
+@dataclass(frozen=True)
+class NearDuplicate:
+    """New example `index` is within `cosine` of `other` (a bank entry or another new one)."""
+
+    index: int
+    other: str          # 'bank #i (class)' or 'new #j'
+    cosine: float
+    same_class: bool
+
+
+@dataclass(frozen=True)
+class EnrollResult:
+    """The new bank and what happened (for logs, diagnostics and the CLI)."""
+
+    file: BankFile
+    action: Literal['add', 'remove']
+    class_name: str
+    count: int                       # examples added / entries removed
+    new_class: bool = False
+    duplicates: tuple[NearDuplicate, ...] = ()
+    duplicate_count: int = 0
+    refit: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def bank(self) -> FeatureBank:
+        return self.file.bank
+
+    @property
+    def version(self) -> int:
+        return bank_version(self.file.bank)
+
+    def describe(self) -> str:
+        verb = 'added' if self.action == 'add' else 'removed'
+        what = 'example(s) to new class' if self.new_class else (
+            'example(s) of' if self.action == 'add' else 'entries of class')
+        text = (f'bank v{self.version}: {verb} {self.count} {what} {self.class_name!r}; '
+                f'gamma {self.bank.gamma:g} ({self.refit.get("gamma_reason", "?")}), '
+                f'threshold {self.refit.get("calibration_reason", "?")}')
+        if self.duplicate_count:
+            text += f'; {self.duplicate_count} near-duplicate example(s)'
+        return text
+
+
+# ------------------------------------------------------------------------------ queries
+
+
+def bank_version(bank: FeatureBank) -> int:
+    """The bank's version counter: 0 as built, +1 per enrollment or removal."""
+    return int(bank.meta.get('bank_version', 0))
+
+
+def class_counts(bank: FeatureBank) -> dict[str, int]:
+    """Entries per class name, in class-id order."""
+    counts = torch.bincount(bank.labels, minlength=bank.num_classes).tolist()
+    return dict(zip(bank.class_names, (int(n) for n in counts), strict=True))
+
+
+def predictable(bank: FeatureBank, min_examples: int) -> list[str]:
+    """Names of the classes with at least min_examples entries."""
+    return [c for c, n in class_counts(bank).items() if n >= min_examples]
+
+
+# ------------------------------------------------------------------------------ operations
+
+
+@dataclass(frozen=True)
+class BankFile:
+    """A bank and the exact feature values its file holds (or will hold once saved).
+
+    stored: (N, d) float16 or float32, the `features` array of the file. Invariant:
+    bank.features == normalize(stored) row by row, computed as `FeatureBank.load` does, so
+    save + load gives back the same bank bit for bit. (Re-casting the normalised features
+    is not enough: rounding to float16 and re-normalising is not idempotent.)
+    """
+
+    bank: FeatureBank
+    stored: np.ndarray
+    # Scatter statistics of the rows for a cheap LDA refit (not saved; see `with_stats`).
+    stats: ScatterStats | None = field(default=None, compare=False, repr=False)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str] | None = None,
+             expected_config: Any = None) -> 'BankFile':
+        """Read a bank file (None: the shipped default) keeping its stored feature values."""
+        bank = FeatureBank.load(path, expected_config)
+        with np.load(bank.path, allow_pickle=False) as z:
+            stored = z['features']
+        return cls(bank, stored)
+
+    @classmethod
+    def of(cls, bank: FeatureBank, dtype: str | None = None) -> 'BankFile':
+        """Wrap a bank never saved: features re-derived from their rounded stored values."""
+        dtype = dtype or bank.meta.get('stored_dtype', 'float32')
+        stored = bank.features.cpu().numpy().astype(dtype)
+        meta = dict(bank.meta, stored_dtype=dtype)
+        return cls(replace(bank, features=_from_stored(stored), meta=meta), stored)
+
+    def with_stats(self) -> 'BankFile':
+        """The same, with ScatterStats when the bank's head has an LDA part (one pass)."""
+        head = self.bank.head
+        if self.stats is not None or head is None or head.lda_coef is None:
+            return self
+        z = vote_to_z(self.bank.features, head)
+        return replace(self, stats=ScatterStats.of(z, self.bank.labels, self.bank.num_classes))
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Atomic write of exactly this bank (see `save_atomic`)."""
+        return save_atomic(self, path)
+
+
+def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
+                 source: str = 'api', policy: RefitPolicy | None = None,
+                 when: datetime | None = None) -> EnrollResult:
+    """Add encoder features of new examples under `class_name` (new or existing class).
+
+    features: (M, D) float32 raw encoder output (D = the bank's encoder feature_dim), M >= 1.
+    Returns a new bank (version + 1); `bf` is left untouched.
+    """
+    bank, policy = bf.bank, policy or RefitPolicy()
+    class_name = _check_name(class_name)
+    if features.ndim != 2 or features.shape[0] == 0:
+        raise EnrollError(f'expected (M, {bank.transform.in_dim}) features with M >= 1, got '
+                          f'{tuple(features.shape)}')
+    if features.shape[1] != bank.transform.in_dim:
+        raise EnrollError(f'features have {features.shape[1]} dims, the bank encoder gives '
+                          f'{bank.transform.in_dim}')
+    if not bool(torch.isfinite(features).all()):
+        raise EnrollError('features hold non-finite values')
+    z_new = bank.transform(features.float().cpu())                  # (M, d) unit rows
+    u_new = z_new if bank.head is None else bank.head.vote_space(z_new)
+    stored_new = u_new.numpy().astype(bf.stored.dtype)
+    new = _from_stored(stored_new)                                   # (M, d) unit rows
+    names = list(bank.class_names)
+    new_class = class_name not in names
+    if new_class:
+        names.append(class_name)
+    cid = names.index(class_name)
+    dups, n_dups = near_duplicates(new, bank, cid, policy.duplicate_cosine)
+    feats = torch.cat([bank.features, new])
+    labels = torch.cat([bank.labels, torch.full((len(new),), cid, dtype=torch.int64)])
+    meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups)
+    # z of the new rows as a full refit would recover them from the stored values.
+    stats = None if bf.stats is None else bf.stats.add(vote_to_z(new, bank.head), cid)
+    out, moved = refit(replace(bank, features=feats, labels=labels, class_names=names,
+                               meta=meta, path=None), policy, stats)
+    stored = np.concatenate([bf.stored, stored_new])
+    return EnrollResult(_restore(out, stored, moved, stats), 'add', class_name, len(new),
+                        new_class, tuple(dups), n_dups, out.meta['refit'])
+
+
+def remove_class(bf: BankFile, class_name: str, source: str = 'api',
+                 policy: RefitPolicy | None = None, when: datetime | None = None
+                 ) -> EnrollResult:
+    """Drop every entry of `class_name`; ids of the classes after it shift down by one."""
+    bank, policy = bf.bank, policy or RefitPolicy()
+    if class_name not in bank.class_names:
+        raise EnrollError(f'no class {class_name!r} in the bank (classes: '
+                          f'{", ".join(bank.class_names)})')
+    if bank.num_classes == 1:
+        raise EnrollError(f'{class_name!r} is the only class: a bank cannot be empty')
+    cid = bank.class_names.index(class_name)
+    keep = bank.labels != cid
+    labels = bank.labels[keep]
+    labels = labels - (labels > cid).long()
+    names = [n for n in bank.class_names if n != class_name]
+    removed = int((~keep).sum())
+    meta = _log(bank, 'remove', class_name, removed, source, when)
+    stats = None if bf.stats is None else bf.stats.remove(
+        vote_to_z(bank.features[~keep], bank.head), cid)
+    out, moved = refit(replace(bank, features=bank.features[keep], labels=labels,
+                               class_names=names, meta=meta, path=None), policy, stats)
+    return EnrollResult(_restore(out, bf.stored[keep.numpy()], moved, stats), 'remove',
+                        class_name, removed, False, (), 0, out.meta['refit'])
+
+
+def near_duplicates(new: torch.Tensor, bank: FeatureBank, class_id: int,
+                    threshold: float = DUPLICATE_COSINE) -> tuple[list[NearDuplicate], int]:
+    """New examples within `threshold` cosine of a bank entry or of an earlier new example.
+
+    new: (M, d) unit rows in the bank's space. Returns (up to 20 listed pairs, exact count of
+    new examples that have a near-duplicate).
+    """
+    found: list[NearDuplicate] = []
+    flagged = set()
+    if len(bank):
+        best, idx = (new @ bank.features.T).max(dim=1)
+        for i in torch.nonzero(best >= threshold).flatten().tolist():
+            j = int(idx[i])
+            cls = int(bank.labels[j])
+            name = bank.class_names[cls] if cls < bank.num_classes else '?'
+            found.append(NearDuplicate(i, f'bank #{j} ({name})', float(best[i]), cls == class_id))
+            flagged.add(i)
+    inner = torch.triu(new @ new.T, diagonal=1)
+    for i, j in torch.nonzero(inner >= threshold).tolist():
+        if j not in flagged:
+            found.append(NearDuplicate(j, f'new #{i}', float(inner[i, j]), True))
+            flagged.add(j)
+    return found[:_MAX_LISTED], len(flagged)
+
+
+def save_atomic(bf: BankFile, path: str | os.PathLike[str]) -> Path:
+    """Write the bank so a crash at any moment leaves either the old file or the new one.
+
+    Serialised into a unique temporary file in the target directory, fsync'ed, renamed over
+    `path`, then the directory fsync'ed (so the rename itself survives a power cut). The
+    features written are `bf.stored` exactly, so loading the file gives `bf.bank` bit for bit.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f'.{path.name}.{os.getpid()}.{threading.get_ident():x}.tmp.npz')
+    # Casting float32 copies of the stored values back to their dtype is exact.
+    exact = replace(bf.bank, features=torch.from_numpy(bf.stored.astype(np.float32)))
+    try:
+        exact.save(tmp, dtype=str(bf.stored.dtype))
+        with open(tmp, 'rb') as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+    return path
+
+
+# ------------------------------------------------------------------------------ helpers
+
+
+def _restore(bank: FeatureBank, stored: np.ndarray, moved: bool,
+             stats: ScatterStats | None) -> BankFile:
+    """The BankFile of a refitted bank: stored values re-derived only if the rows moved.
+
+    The scatter statistics live in z space, which re-whitening does not change.
+    """
+    if not moved:          # rows already are normalize(stored), row by row
+        return BankFile(bank, stored, stats)
+    stored = bank.features.numpy().astype(stored.dtype)
+    return BankFile(replace(bank, features=_from_stored(stored)), stored, stats)
+
+
+def _from_stored(stored: np.ndarray) -> torch.Tensor:
+    """(M, d) stored values -> unit rows, exactly as `FeatureBank.load` computes them."""
+    return torch.nn.functional.normalize(torch.from_numpy(stored.astype(np.float32)), dim=1)
+
+
+def _check_name(name: str) -> str:
+    name = str(name).strip()
+    if not name or '\n' in name:
+        raise EnrollError(f'class name {name!r} must be non-empty and on one line')
+    return name
+
+
+def _log(bank: FeatureBank, action: str, class_name: str, count: int, source: str,
+         when: datetime | None, **extra: Any) -> dict[str, Any]:
+    meta = copy.deepcopy(bank.meta)
+    version = int(meta.get('bank_version', 0)) + 1
+    meta['bank_version'] = version
+    entry = {'version': version, 'action': action, 'class': class_name, 'count': int(count),
+             'time': (when or datetime.now(UTC)).isoformat(timespec='seconds'),
+             'source': str(source), **extra}
+    meta['enrollments'] = [*meta.get('enrollments', []), entry]
+    return meta

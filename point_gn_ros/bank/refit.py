@@ -1,0 +1,298 @@
+"""Refitting what depends on a bank's entries after they changed (bank/enroll.py calls it).
+
+`refit()` is the single place that knows which fitted parts of a bank depend on its entries:
+gamma and the discriminant head's knobs (kept, or re-chosen by stratified k-fold CV on the
+bank), the head itself (bank/head.py, refitted in closed form) and the open-set thresholds
+(recalibrated on held-out folds, or kept). The feature transform is always kept: refitting it
+would need the raw encoder features of the whole bank, which the file does not hold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+import copy
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from point_gn_ros.bank.head import CovarianceFit, Head, fit_head
+from point_gn_ros.bank.selection import (DEFAULT_GAMMAS, calibrate_novelty, calibrate_unknown,
+                                         select)
+from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.errors import PointGNError
+
+# Cosine (in the bank's transformed space) at or above which two examples are reported as
+# near-duplicates: the same scan sent twice, or a frame that did not move.
+DUPLICATE_COSINE = 0.9995
+# 'auto' refits gamma by CV only on banks up to this many entries: on the 9,843-entry default
+# bank a CV pass costs seconds and the choice is dominated by the existing classes anyway.
+AUTO_CV_MAX_ENTRIES = 2000
+# LDA bias of a class that cannot be predicted (below min_examples): finite, never wins.
+_ABSENT_BIAS = -1e4
+
+GammaPolicy = Literal['keep', 'cv', 'auto']
+CalibrationPolicy = Literal['keep', 'recalibrate', 'auto']
+
+
+@dataclass(frozen=True)
+class ScatterStats:
+    """Sufficient statistics of the bank's rows z for the LDA: updated per enrollment.
+
+    gram (d, d) float64 = sum_i z_i z_i^T over every row; sums (C, d) float64 per class;
+    counts (C,) float64. The pooled within-class scatter of the classes S is
+    gram - sum_c sums_c sums_c^T / counts_c, so adding examples costs (m, d) x (d, m) and
+    one (d, d) eigen-decomposition instead of a pass over the whole bank.
+    """
+
+    gram: torch.Tensor
+    sums: torch.Tensor
+    counts: torch.Tensor
+
+    @classmethod
+    def of(cls, z: torch.Tensor, labels: torch.Tensor, num_classes: int) -> 'ScatterStats':
+        z64 = z.double()
+        sums = torch.zeros(num_classes, z.shape[1], dtype=torch.float64)
+        sums.index_add_(0, labels, z64)
+        counts = torch.bincount(labels, minlength=num_classes).double()
+        return cls(z64.T @ z64, sums, counts)
+
+    def add(self, z: torch.Tensor, class_id: int) -> 'ScatterStats':
+        """Rows z (m, d) joining class `class_id` (== C: a new class) -> new stats."""
+        z64 = z.double()
+        sums, counts = self.sums, self.counts
+        if class_id == len(counts):
+            sums = torch.cat([sums, torch.zeros(1, sums.shape[1], dtype=torch.float64)])
+            counts = torch.cat([counts, torch.zeros(1, dtype=torch.float64)])
+        sums, counts = sums.clone(), counts.clone()
+        sums[class_id] += z64.sum(0)
+        counts[class_id] += len(z64)
+        return ScatterStats(self.gram + z64.T @ z64, sums, counts)
+
+    def remove(self, z: torch.Tensor, class_id: int) -> 'ScatterStats':
+        """Every row z (m, d) of class `class_id` leaves; later class ids shift down."""
+        z64 = z.double()
+        keep = torch.arange(len(self.counts)) != class_id
+        return ScatterStats(self.gram - z64.T @ z64, self.sums[keep], self.counts[keep])
+
+    def lda(self, present: np.ndarray, alpha: float
+            ) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """LDA of the classes `present` under Sigma_alpha (as CovarianceFit.lda), or None.
+
+        -> coef (P, d) float32, bias (P,) float32. Solved with one Cholesky factorisation
+        of Sigma_alpha = (1 - alpha) Sigma + alpha tr(Sigma)/d I (no eigen-decomposition).
+        None when the stats cannot give it exactly (rows of other classes in the gram, fewer
+        rows than dimensions: CovarianceFit.fit's low-rank path) or Sigma_alpha is singular.
+        """
+        idx = torch.from_numpy(present)
+        n = self.counts[idx]
+        others = torch.ones(len(self.counts), dtype=torch.bool)
+        others[idx] = False
+        total, d = float(n.sum()), self.gram.shape[0]
+        if bool((self.counts[others] > 0).any()) or total < d:
+            return None
+        means = self.sums[idx] / n[:, None]
+        scatter = self.gram - (self.sums[idx].T / n) @ self.sums[idx]
+        cov = (scatter + scatter.T) / (2 * max(1.0, total - len(present)))
+        tau = float(torch.diagonal(cov).sum()) / d
+        shrunk = (1.0 - alpha) * cov + alpha * tau * torch.eye(d, dtype=torch.float64)
+        chol, info = torch.linalg.cholesky_ex(shrunk)
+        if int(info) != 0:
+            return None
+        coef = torch.cholesky_solve(means.T, chol).T                     # Sigma_a^-1 mu_c
+        bias = -0.5 * (means * coef).sum(1) + (n / total).log()
+        return coef.float(), bias.float()
+
+
+class RefitError(PointGNError):
+    """No class of the bank can be predicted under the policy."""
+
+
+@dataclass(frozen=True)
+class RefitPolicy:
+    """What `refit()` re-decides after the bank's entries changed.
+
+    gamma: 'keep' the bank's gamma, 'cv' re-choose it by stratified k-fold CV over the bank's
+    gamma grid, 'auto' = 'cv' when every predictable class has >= `folds` examples and the
+    bank has <= cv_max_entries entries, else 'keep'.
+    calibration (open-set threshold): 'recalibrate' from held-out CV scores, 'keep' the stored
+    one, 'auto' = recalibrate exactly when gamma was re-chosen by CV (the scores come free).
+    min_examples: classes with fewer entries are kept in the bank but not predicted (see
+    `active_view`) and do not take part in the fit.
+    """
+
+    gamma: GammaPolicy = 'auto'
+    calibration: CalibrationPolicy = 'auto'
+    min_examples: int = 1
+    folds: int = 5
+    cv_max_entries: int = AUTO_CV_MAX_ENTRIES
+    duplicate_cosine: float = DUPLICATE_COSINE
+
+    def __post_init__(self) -> None:
+        if self.gamma not in ('keep', 'cv', 'auto'):
+            raise ValueError(f'gamma policy must be keep, cv or auto, got {self.gamma!r}')
+        if self.calibration not in ('keep', 'recalibrate', 'auto'):
+            raise ValueError(f'calibration policy must be keep, recalibrate or auto, got '
+                             f'{self.calibration!r}')
+        if self.min_examples < 1 or self.folds < 2:
+            raise ValueError('min_examples must be >= 1 and folds >= 2')
+
+
+def active_view(bank: FeatureBank, min_examples: int) -> FeatureBank:
+    """The bank a classifier should use: entries of classes with >= min_examples only.
+
+    Class names (and so class ids) are unchanged; a class below the minimum simply gets no
+    votes. Returns `bank` itself when every class qualifies (the common case: no copy).
+    """
+    counts = torch.bincount(bank.labels, minlength=bank.num_classes)
+    ok = counts >= min_examples
+    if bool(ok.all()):
+        return bank
+    keep = ok[bank.labels]
+    if not bool(keep.any()):
+        raise RefitError(f'no class has {min_examples} example(s) yet: nothing to predict')
+    return replace(bank, features=bank.features[keep], labels=bank.labels[keep])
+
+
+def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
+          stats: ScatterStats | None = None) -> tuple[FeatureBank, bool]:
+    """Re-decide what depends on the bank's entries -> (new bank, whether rows were re-whitened).
+
+    The single hook where a bank's fitted parts are refreshed after its entries changed
+    (meta['refit'] records what was done):
+    - gamma and the head's knobs (whitening / LDA shrinkage, fusion weight, temperature) are
+      kept, or re-chosen by stratified k-fold CV on the bank (policy.gamma);
+    - the head (bank/head.py) is refitted in closed form on the bank's entries: with kept
+      knobs, the LDA class means, priors and pooled covariance (the vote's whitening is kept,
+      so stored rows do not move); after CV, the whole head, and every row is re-whitened;
+    - the open-set thresholds are recalibrated on held-out folds or kept (policy.calibration).
+    Classes below policy.min_examples take no part and can never win (see `active_view`).
+    The feature transform is always kept (see the module docstring). stats: the bank's
+    ScatterStats (same rows), which make the kept-knobs LDA refit cheap.
+    """
+    head = bank.head
+    view = active_view(bank, policy.min_examples)
+    meta = copy.deepcopy(bank.meta)
+    labels_all = view.labels.numpy()
+    counts = np.bincount(labels_all, minlength=bank.num_classes)
+    present = np.flatnonzero(counts > 0)                  # class ids that take part
+    compact = torch.from_numpy(np.searchsorted(present, labels_all))
+    gamma, gamma_reason, sel = bank.gamma, 'kept', None
+    want_cv = policy.gamma == 'cv' or (
+        policy.gamma == 'auto' and len(view) <= policy.cv_max_entries
+        and counts[present].min() >= policy.folds)
+    grid = meta.get('selection', {}).get('grid', {})
+    folds = _folds(counts[present], policy.folds)
+    z_view = None
+    if want_cv and len(present) >= 2:
+        z_view = vote_to_z(view.features, head)
+        sel = select(z_view, np.asarray(compact), len(present),
+                     tuple(grid.get('gammas') or DEFAULT_GAMMAS), ('none',), (None,), folds,
+                     alphas=tuple(grid.get('alphas') or ()),
+                     lda_alphas=tuple(grid.get('lda_alphas') or grid.get('alphas') or ()),
+                     weights=tuple(grid.get('weights') or (0.0,)))
+        gamma, gamma_reason = float(sel.gamma), (
+            f'{sel.folds_used}-fold CV on the bank: {100 * sel.cv_accuracy:.1f} %')
+        new_head = fit_head(z_view, compact, len(present), sel.gamma, sel.alpha, sel.lda_alpha,
+                            sel.fusion_weight, sel.temperature)
+        meta['head'] = {**meta.get('head', {}), **sel.head_meta()}
+    elif want_cv:
+        gamma_reason = 'kept (CV needs two classes)'
+        new_head = head
+    else:
+        if policy.gamma == 'auto':
+            gamma_reason = 'kept (auto: bank too large or a class too small for CV)'
+        new_head = head
+        if head is not None and head.lda_coef is not None:
+            # Closed-form LDA refit with the CV-chosen shrinkage kept.
+            lda_alpha = float(meta.get('head', {}).get('lda_alpha') or 0.0)
+            lda = stats.lda(present, lda_alpha) if stats is not None else None
+            if lda is None:
+                z_view = vote_to_z(view.features, head)
+                lda = CovarianceFit.fit(z_view, compact, len(present)).lda(lda_alpha)
+            coef, bias = lda
+            new_head = replace(head, lda_coef=coef, lda_bias=bias)
+    if new_head is not None:
+        new_head = _expand_lda(replace(new_head, gamma=gamma), present, bank.num_classes)
+        if new_head.is_plain_vote and new_head.temperature == 1.0:
+            new_head = None
+    rewhiten = sel is not None and (
+        (head is not None and head.whiten is not None)
+        or (new_head is not None and new_head.whiten is not None))
+    features = bank.features
+    if rewhiten:
+        z_all = vote_to_z(bank.features, head)
+        features = z_all if new_head is None else new_head.vote_space(z_all)
+    cal_reason = _recalibrate(meta, bank, view, compact, present, gamma, new_head, sel, policy,
+                              folds, z_view)
+    meta['refit'] = {'version': int(meta.get('bank_version', 0)), 'gamma': gamma,
+                     'gamma_reason': gamma_reason,
+                     'head': ('none (plain kernel vote)' if new_head is None else
+                              'refitted in closed form' + (', knobs by CV' if sel else
+                                                           ', knobs kept')),
+                     'calibration_reason': cal_reason, 'min_examples': policy.min_examples,
+                     'predicted_classes': int(len(present))}
+    return replace(bank, features=features, gamma=gamma, meta=meta, head=new_head), rewhiten
+
+
+def vote_to_z(u: torch.Tensor, head: Head | None) -> torch.Tensor:
+    """Bank rows in the vote's space (N, d) -> the transformed rows z (N, d) they came from.
+
+    u = normalize(z W) with W the head's (invertible, symmetric) whitening, z unit rows, so
+    z = normalize(u W^-1) (exact up to the stored precision). Without whitening u is z.
+    """
+    if head is None or head.whiten is None:
+        return u
+    inv = torch.linalg.inv(head.whiten.double())
+    return torch.nn.functional.normalize(u.double() @ inv, dim=1).float()
+
+
+def _expand_lda(head: Head, present: np.ndarray, num_classes: int) -> Head:
+    """LDA rows fitted on the present classes -> one row per class; absent classes never win."""
+    if head.lda_coef is None or head.lda_coef.shape[0] == num_classes:
+        return head
+    coef = torch.zeros(num_classes, head.lda_coef.shape[1])
+    bias = torch.full((num_classes,), _ABSENT_BIAS)
+    idx = torch.from_numpy(present)
+    coef[idx], bias[idx] = head.lda_coef, head.lda_bias
+    return replace(head, lda_coef=coef, lda_bias=bias)
+
+
+def _recalibrate(meta: dict, bank: FeatureBank, view: FeatureBank, compact: torch.Tensor,
+                 present: np.ndarray, gamma: float, head: Head | None, sel: Any,
+                 policy: RefitPolicy, folds: int, z_view: torch.Tensor | None) -> str:
+    """Update meta's open-set calibration per policy; -> what was done."""
+    calib = meta.get('unknown_calibration')
+    recal = policy.calibration == 'recalibrate' or (policy.calibration == 'auto'
+                                                    and sel is not None)
+    if not recal or len(present) < 2:
+        return 'kept' if calib else 'none'
+    if sel is None:      # held-out scores with every knob pinned at its kept value
+        hm = meta.get('head', {})
+        z_view = vote_to_z(view.features, bank.head) if z_view is None else z_view
+        alpha, lda_alpha = hm.get('alpha'), hm.get('lda_alpha')
+        w = float(head.fusion_weight) if head is not None else 0.0
+        sel = select(z_view, np.asarray(compact), len(present), (gamma,), ('none',), (None,),
+                     folds, alphas=() if alpha is None else (float(alpha),),
+                     lda_alphas=() if lda_alpha is None or w == 0 else (float(lda_alpha),),
+                     weights=(w,), whiten_options=(alpha is not None,))
+    rate = float((calib or {}).get('false_reject_rate', 0.05))
+    # Whatever measure each stored rule thresholds stays the same (the unknown rule is the
+    # calibrated probability by default; older banks thresholded novelty there).
+    novelty = calibrate_novelty(sel.heldout_novelty, rate) \
+        if sel.heldout_novelty is not None else None
+    probability = calibrate_unknown(sel.heldout_scores, rate)
+    if (calib or {}).get('measure') == 'novelty' and novelty is not None:
+        meta['unknown_calibration'] = novelty
+    else:
+        meta['unknown_calibration'] = probability
+    for key, value in (('novelty_calibration', novelty),
+                       ('probability_calibration', probability)):
+        if key in meta and value is not None:
+            meta[key] = value
+    return f'recalibrated ({100 * rate:g} % false rejects on held-out folds)'
+
+
+def _folds(counts: np.ndarray, folds: int) -> int:
+    """Fewer folds when the smallest class is small (>= 2 so every fold trains)."""
+    return int(max(2, min(folds, int(counts.min()))))

@@ -1,0 +1,409 @@
+"""Live enrollment interfaces of the classifier node: parameters, topics, services, swaps.
+
+Standard interfaces only (no custom message package), all in the node's private namespace:
+
+* ``~/enroll`` (vision_msgs/Detection3DArray) + ``~/enroll_scene`` (sensor_msgs/PointCloud2),
+  when vision_msgs is importable: the points of the scene cloud with the SAME header stamp
+  inside each detection's ``bbox`` (in the cloud's frame; a zero-size box = the whole cloud)
+  are one example of class ``results[0].hypothesis.class_id`` (new or existing). vision_msgs 4
+  (ROS 2 Humble and later) dropped ``Detection3D.source_cloud``, hence the paired cloud.
+  Unlabelled detections and unpaired messages (after 5 s) are refused and counted;
+* ``~/enroll_cloud`` (sensor_msgs/PointCloud2, always; the fallback where vision_msgs is
+  absent): each message is one example of the class named by parameter ``enroll_class``;
+* ``~/start_capture`` / ``~/stop_capture`` (std_srvs/Trigger): while capturing, every object
+  the node classifies on ``capture_topic`` (default: every input topic) is also kept (up to
+  ``capture_max``); stop enrolls them under ``enroll_class``;
+* ``~/forget`` (std_srvs/Trigger): removes the class named by ``enroll_class``;
+* ``~/save_bank`` (std_srvs/Trigger): writes the current bank to ``save_bank_path``
+  atomically (temporary file, fsync, rename): a crash leaves the previous file whole.
+
+Every change makes a new bank version (copy-on-write, bank/enroll.py) that the worker picks
+up between two micro-batches (Pipeline.update): each answer is computed with one version.
+Classes with fewer than ``min_examples_per_class`` entries are kept but not predicted.
+Examples are turned z-up like the objects the node classifies (frames.py) and encoded on the
+worker between micro-batches (node/enroll_engine.py).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.lifecycle import ManagedEntity, TransitionCallbackReturn
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+
+from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
+from point_gn_ros.bank.live import LiveBank, Snapshot
+from point_gn_ros.errors import DecodeError, PointGNError
+from point_gn_ros.node.enroll_engine import EnrollEngine
+from point_gn_ros.node.frames import to_z_up
+
+try:
+    from vision_msgs.msg import Detection3DArray
+except ImportError:          # a ROS install without vision_msgs: PointCloud2 route only
+    Detection3DArray = None
+
+# A detection array waits this long for the scene cloud of the same stamp (and vice versa).
+PAIR_TIMEOUT_S = 5.0
+_WRITABLE = ('enroll_class', 'save_bank_path', 'capture_topic')
+
+# name -> (default, description, extra ParameterDescriptor kwargs); the writable ones are read
+# each time a service is called, the others once at start.
+ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
+    'enroll_class': ('', 'Class that ~/enroll_cloud, ~/start_capture and ~/forget act on '
+                         '(settable at run time).', {}),
+    'save_bank_path': ('', 'File ~/save_bank writes (atomically); settable at run time.', {}),
+    'capture_topic': ('', "Input topic ~/start_capture takes objects from; '' = every input "
+                          'topic (settable at run time).', {}),
+    'min_examples_per_class': (1, 'A class is predicted only once it has this many examples.',
+                               {'integer_range': [IntegerRange(from_value=1, to_value=10_000,
+                                                               step=1)]}),
+    'enroll_refit_gamma': ('auto', "After a change: 'keep' gamma, re-choose it by 'cv', or "
+                                   "'auto' (CV on banks of <= 2,000 entries).",
+                           {'additional_constraints': "one of 'auto', 'keep', 'cv'"}),
+    'enroll_max_pending': (512, 'Examples waiting to be encoded at most; beyond, refused.',
+                           {'integer_range': [IntegerRange(from_value=1, to_value=100_000,
+                                                           step=1)]}),
+    'capture_max': (200, 'Objects one capture keeps at most.',
+                    {'integer_range': [IntegerRange(from_value=1, to_value=100_000, step=1)]}),
+}
+
+
+class Enrollment(ManagedEntity):
+    """Live enrollment for a ClassifierNode: `ClassifierNode(extensions=[Enrollment])`.
+
+    Constructed with the node (declares the parameters, adds the `<node>: enrollment`
+    diagnostics); on configure (after the node loaded its bank and started its worker) it
+    wraps that bank in a LiveBank and hooks the worker; on activate it creates the topics
+    and services, on deactivate it removes them; cleanup releases the bank. Every new
+    version reaches the node through `node.replace_recognizer` (swap between micro-batches,
+    class names and label info republished).
+    """
+
+    def __init__(self, node: Any) -> None:
+        self.node = node
+        self.values = {name: node.declare_parameter(
+            name, default, ParameterDescriptor(description=text,
+                                               read_only=name not in _WRITABLE, **extra)).value
+            for name, (default, text, extra) in ENROLL_PARAMETERS.items()}
+        self.live: LiveBank | None = None
+        self.engine: EnrollEngine | None = None
+        self._pipeline: Any = None
+        self._subs: list[Any] = []
+        self._services: list[Any] = []
+        node.add_diagnostic_source(self.diagnostic_status)
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def on_configure(self, state: Any) -> TransitionCallbackReturn:
+        node, log = self.node, self.node.get_logger()
+        gamma = self.values['enroll_refit_gamma']
+        if gamma not in ('auto', 'keep', 'cv'):
+            log.error(f'parameter enroll_refit_gamma={gamma!r} must be one of auto, keep, cv')
+            return TransitionCallbackReturn.FAILURE
+        policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'])
+        try:
+            self.live = LiveBank(_bank_file(node.recognizer.bank), self._make_model, policy)
+            node.replace_recognizer(self.live.current().model)
+        except (PointGNError, ValueError) as exc:
+            log.error(f'enrollment: {exc}')
+            self.live = None
+            return TransitionCallbackReturn.FAILURE
+        # The node's worker (node/pipeline.py) calls these between and inside micro-batches.
+        self._pipeline = node._pipeline
+        self.engine = EnrollEngine(
+            self.live, self._swap, log.info, node._warn, chunk=node.settings.max_batch,
+            max_pending=self.values['enroll_max_pending'],
+            capture_max=self.values['capture_max'], min_points=node.settings.min_points)
+        self._pipeline.observe = self._observe
+        self._pipeline.between_batches = self._between_batches
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: Any) -> TransitionCallbackReturn:
+        node = self.node
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                         history=HistoryPolicy.KEEP_LAST)
+        self._subs = [node.create_subscription(PointCloud2, '~/enroll_cloud',
+                                               self._on_cloud, qos)]
+        if Detection3DArray is not None:
+            self._pairing = StampPairing(PAIR_TIMEOUT_S)
+            self._subs += [
+                node.create_subscription(Detection3DArray, '~/enroll', self._on_detections, qos),
+                node.create_subscription(PointCloud2, '~/enroll_scene', self._on_scene, qos)]
+        # Services may wait for a save or a refit: their own group, so that with the
+        # node's multi-threaded executor they never hold up the input callbacks.
+        group = MutuallyExclusiveCallbackGroup()
+        self._services = [
+            node.create_service(Trigger, f'~/{name}', handler, callback_group=group)
+            for name, handler in (('start_capture', self._start_capture),
+                                  ('stop_capture', self._stop_capture),
+                                  ('forget', self._forget), ('save_bank', self._save_bank))]
+        snap = self.live.current()
+        route = ('~/enroll (Detection3DArray) + ~/enroll_scene (PointCloud2), '
+                 if Detection3DArray is not None else '')
+        node.get_logger().info(
+            f'enrollment: {route}~/enroll_cloud (PointCloud2 + enroll_class), services '
+            f'start_capture, stop_capture, forget, save_bank; bank v{snap.version}, '
+            f'{len(predictable(snap.bank, self.live.policy.min_examples))} of '
+            f'{len(snap.class_names)} classes predicted')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: Any) -> TransitionCallbackReturn:
+        self._destroy_interfaces()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: Any) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: Any) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: Any) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _destroy_interfaces(self) -> None:
+        for sub in self._subs:
+            self.node.destroy_subscription(sub)
+        for srv in self._services:
+            self.node.destroy_service(srv)
+        self._subs, self._services = [], []
+
+    def _release(self) -> None:
+        self._destroy_interfaces()
+        if self.engine is not None:
+            self.engine.close()
+        self.engine = self.live = self._pipeline = None
+
+    def _make_model(self, bank: Any) -> Any:
+        """A recognizer for one bank version, sharing the node's encoder."""
+        from point_gn_ros.recognizer import Recognizer
+        s, enc = self.node.settings, self.node.recognizer.encoder
+        return Recognizer(bank, s.device, s.resample, s.top_k, s.unknown_threshold or None,
+                          encoder=enc)
+
+    # ------------------------------------------------------------------ worker hooks
+
+    def _observe(self, jobs: list[Any]) -> None:
+        if self.engine is not None and self.engine.capturing():
+            for job in jobs:
+                self.engine.observe(job.item.topic_index, job.model_clouds())
+
+    def _between_batches(self) -> bool:
+        try:
+            return self.engine is not None and self.engine.step(self._pipeline.recognizer)
+        except Exception as exc:  # noqa: BLE001 - the worker must outlive enrollment bugs
+            self.node.get_logger().error(f'enrollment step failed: {type(exc).__name__}: {exc}')
+            return False
+
+    def _swap(self, snap: Snapshot, result: EnrollResult) -> None:
+        """Committer thread: the worker uses `snap` from its next micro-batch on."""
+        self.node.replace_recognizer(snap.model)
+
+    # ------------------------------------------------------------------ topics
+
+    def _on_detections(self, msg: Any) -> None:
+        self._paired(self._pairing.add(msg, None))
+
+    def _on_scene(self, msg: PointCloud2) -> None:
+        self._paired(self._pairing.add(None, msg))
+
+    def _paired(self, pairs: list[tuple[Any, Any]]) -> None:
+        """Each detection's box crops one example out of the scene cloud of the same stamp."""
+        from point_gn_ros.pointcloud2 import decode_xyz
+
+        if self._pairing.expired:
+            n, self._pairing.expired = self._pairing.expired, 0
+            self.engine.refuse(n, f'{n} detection array(s) or scene cloud(s) found no partner '
+                                   f'with the same stamp within {PAIR_TIMEOUT_S:g} s')
+        for dets, scene in pairs:
+            try:
+                xyz = decode_xyz(scene, allow_empty=True).xyz
+            except DecodeError as exc:
+                self.engine.refuse(len(dets.detections), f'scene cloud not decodable: {exc}')
+                continue
+            rot = self._pipeline.frame_rotation(scene.header.frame_id)
+            per_class: dict[str, list] = {}
+            unlabelled = 0
+            for det in dets.detections:
+                label = det.results[0].hypothesis.class_id.strip() if det.results else ''
+                if not label:
+                    unlabelled += 1
+                    continue
+                per_class.setdefault(label, []).append(to_z_up(crop_box(xyz, det.bbox), rot))
+            if unlabelled:
+                self.engine.refuse(unlabelled, 'detection without results[0].hypothesis.'
+                                                'class_id')
+            for label, clouds in per_class.items():
+                self.engine.submit(label, clouds, '~/enroll')
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        from point_gn_ros.pointcloud2 import decode_xyz
+
+        name = self._param('enroll_class')
+        try:
+            xyz = decode_xyz(msg, allow_empty=True).xyz
+        except DecodeError as exc:
+            self.engine.refuse(1, f'~/enroll_cloud message not decodable: {exc}')
+            return
+        rot = self._pipeline.frame_rotation(msg.header.frame_id)
+        self.engine.submit(name, [to_z_up(xyz, rot)], '~/enroll_cloud')
+
+    # ------------------------------------------------------------------ services
+
+    def _start_capture(self, request: Any, response: Any) -> Any:
+        topic = self._param('capture_topic')
+        topics = None
+        if topic:
+            names = self._pipeline.topic_names
+            matches = [i for i, t in enumerate(names)
+                       if t == topic or t.rsplit('/', 1)[-1] == topic.rsplit('/', 1)[-1]]
+            if not matches:
+                return _answer(response, False, f'capture_topic {topic!r} is not an input '
+                                                f'topic ({", ".join(names)})')
+            topics = frozenset(matches)
+        return _answer(response, *self.engine.start_capture(self._param('enroll_class'),
+                                                            topics))
+
+    def _stop_capture(self, request: Any, response: Any) -> Any:
+        return _answer(response, *self.engine.stop_capture())
+
+    def _forget(self, request: Any, response: Any) -> Any:
+        name = self._param('enroll_class')
+        if not name:
+            return _answer(response, False, 'set the enroll_class parameter first')
+        return _answer(response, *self.engine.forget(name, '~/forget'))
+
+    def _save_bank(self, request: Any, response: Any) -> Any:
+        return _answer(response, *self.engine.save(self._param('save_bank_path')))
+
+    def _param(self, name: str) -> str:
+        return str(self.node.get_parameter(name).value or '').strip()
+
+    # ------------------------------------------------------------------ diagnostics, shutdown
+
+    def diagnostic_status(self, node_name: str) -> DiagnosticStatus:
+        """`<node>: enrollment` status: bank version, class counts, enrollment counters."""
+        if self.live is None:
+            return DiagnosticStatus(level=DiagnosticStatus.OK, name=f'{node_name}: enrollment',
+                                    message='not configured')
+        values = self.diagnostic_values()
+        eng = self.engine
+        level, message = DiagnosticStatus.OK, f'bank v{values["bank_version"]}'
+        if eng is not None and eng.last_error:
+            level, message = DiagnosticStatus.WARN, eng.last_error[:200]
+        st = DiagnosticStatus(level=level, name=f'{node_name}: enrollment', message=message)
+        st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        return st
+
+    def diagnostic_values(self) -> dict[str, Any]:
+        """Key -> value for the node's diagnostics: bank version, class counts, enrollment."""
+        snap = self.live.current()
+        counts = snap.counts()
+        out: dict[str, Any] = {
+            'bank_version': snap.version, 'bank_entries': len(snap.bank),
+            'classes': len(counts),
+            'predicted_classes': len(predictable(snap.bank, self.live.policy.min_examples)),
+            'min_examples_per_class': self.live.policy.min_examples,
+        }
+        eng = self.engine
+        if eng is not None:
+            out |= {'enroll_pending': eng.pending(), 'capturing': eng.capturing() or 'no',
+                    **{f'enroll_{k}': v for k, v in eng.counters.items()},
+                    'enroll_last_latency_s': f'{eng.last_latency_s:.3f}',
+                    'last_save': (f'v{eng.last_save[1]} {eng.last_save[0]}' if eng.last_save
+                                  else 'none')}
+        out |= {f'count.{name}': n for name, n in counts.items()}
+        return out
+
+
+
+class StampPairing:
+    """Matches detection arrays with scene clouds of the identical header stamp.
+
+    Either may arrive first; one left alone longer than `timeout_s` is discarded and counted
+    in `expired`. Thread-safe.
+    """
+
+    def __init__(self, timeout_s: float) -> None:
+        self.timeout_s = timeout_s
+        self.expired = 0
+        self._waiting: tuple[dict, dict] = ({}, {})      # detections, scenes: key -> (t, msg)
+        self._lock = threading.Lock()
+
+    def add(self, dets: Any, scene: Any) -> list[tuple[Any, Any]]:
+        """Give one message (the other None); -> [(detections, scene)] pairs now complete."""
+        msg = dets if dets is not None else scene
+        side = 0 if dets is not None else 1
+        key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+        now = time.monotonic()
+        with self._lock:
+            for waiting in self._waiting:
+                for k in [k for k, (t, _) in waiting.items() if now - t > self.timeout_s]:
+                    del waiting[k]
+                    self.expired += 1
+            other = self._waiting[1 - side].pop(key, None)
+            if other is None:
+                self._waiting[side][key] = (now, msg)
+                return []
+        return [(msg, other[1]) if side == 0 else (other[1], msg)]
+
+
+def crop_box(xyz: np.ndarray, bbox: Any) -> np.ndarray:
+    """Points of xyz (N, 3) inside a vision_msgs/BoundingBox3D -> (M, 3) float32.
+
+    The box is in the cloud's frame (centre pose + size); a box of size 0 keeps every point
+    (the whole scene is the example).
+    """
+    size = np.array([bbox.size.x, bbox.size.y, bbox.size.z], dtype=np.float64)
+    if not (size > 0).any():
+        return xyz
+    c = bbox.center.position
+    q = bbox.center.orientation
+    rot = _quat_matrix(q.x, q.y, q.z, q.w)                # box axes in the cloud frame
+    local = (xyz.astype(np.float64) - np.array([c.x, c.y, c.z])) @ rot
+    inside = (np.abs(local) <= size / 2 + 1e-6).all(axis=1)
+    return xyz[inside]
+
+
+def _quat_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """(3, 3) rotation of a quaternion (identity for the all-zero default)."""
+    n = x * x + y * y + z * z + w * w
+    if n < 1e-12:
+        return np.eye(3)
+    s = 2.0 / n
+    return np.array([
+        [1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
+        [s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w)],
+        [s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y)]])
+
+
+def _bank_file(bank: Any) -> BankFile:
+    """The node's loaded bank with the exact values its file stores (see BankFile)."""
+    if bank.path is not None:
+        try:
+            with np.load(bank.path, allow_pickle=False) as z:
+                stored = z['features']
+            if stored.shape == tuple(bank.features.shape) and torch.equal(
+                    torch.nn.functional.normalize(
+                        torch.from_numpy(stored.astype(np.float32)), dim=1), bank.features):
+                return BankFile(bank, stored)
+        except (OSError, KeyError, ValueError):
+            pass                 # the file changed or went away since the node loaded it
+    return BankFile.of(bank)
+
+
+def _answer(response: Any, ok: bool, message: str) -> Any:
+    response.success, response.message = bool(ok), message
+    return response

@@ -1,0 +1,142 @@
+"""Teach the default bank 10 new objects from 5 single-view scans each; measure what it costs.
+
+Protocol (issue 12 goal):
+- Bank: the shipped default (ModelNet40 train, yaw-aligned, 40 classes), untouched by the test
+  split until this script.
+- New objects: for each ModelNet10 category one test-split object (seeded choice); each becomes a
+  NEW class '<category>_object_<index>' (instance-level: "my chair", not "a chair").
+- Enrollment: 5 single-view scans per object (core/views.py simulator, evenly spread azimuths,
+  seed s), encoded and added through `LiveBank.add` exactly as the node does, one call per object.
+  The refit policy is the node's default ('auto': the 9,843-entry bank keeps its CV-chosen gamma
+  and its calibrated threshold, recorded in the bank).
+- New-object accuracy: 20 OTHER single-view scans of each enrolled object (seed s + 1000, other
+  azimuths, noise and dropout), labelled right only as the object's own new class.
+- Existing classes: the ModelNet40 test split without the 10 enrolled objects, before and after,
+  (a) complete objects at a seeded random yaw, (b) one single-view scan of each (seed 7).
+Nothing here is tuned on the test split: the bank's knobs were chosen by CV on train.
+
+Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+import sys
+import time
+
+import numpy as np
+import torch
+
+from point_gn_ros.bank.enroll import BankFile, RefitPolicy
+from point_gn_ros.bank.live import LiveBank
+from point_gn_ros.core.config import ENCODER_VERSION
+from point_gn_ros.core.sampling import rotate_z
+from point_gn_ros.core.views import SIMULATOR_VERSION, simulate_view, simulate_views
+from point_gn_ros.datasets import open_dataset
+from point_gn_ros.recognizer import Recognizer, encode_clouds, make_encoder
+
+MODELNET = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'modelnet40_1024'
+MODELNET10 = ('bathtub', 'bed', 'chair', 'desk', 'dresser', 'monitor', 'night_stand', 'sofa',
+              'table', 'toilet')
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    p.add_argument('--bank', default=None, help='bank (default: the shipped default bank)')
+    p.add_argument('--data', default=str(MODELNET), help='ModelNet40 h5 folder')
+    p.add_argument('--enroll-views', type=int, default=5)
+    p.add_argument('--query-views', type=int, default=20)
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--json', default=None, help='write the figures here')
+    p.add_argument('--cache', default=None, metavar='DIR',
+                   help='reuse the encoded clouds (keyed by encoder configuration and seeds)')
+    args = p.parse_args(argv)
+
+    bf = BankFile.load(args.bank)
+    encoder = make_encoder(bf.bank.config)
+    test = open_dataset(args.data, split='test')
+    rng = np.random.default_rng(args.seed)
+    chosen = {c: int(rng.choice(np.flatnonzero(test.labels == test.class_names.index(c))))
+              for c in MODELNET10}
+    rest = np.setdiff1d(np.arange(len(test)), list(chosen.values()))
+
+    def encode(clouds: list[np.ndarray]):
+        return encode_clouds(clouds, encoder, batch_size=64)
+
+    t0 = time.perf_counter()
+    key = hashlib.sha1(repr((bf.bank.config.to_dict(), ENCODER_VERSION, SIMULATOR_VERSION,
+                             args.seed, args.enroll_views, args.query_views)
+                            ).encode()).hexdigest()[:16]
+    cache = Path(args.cache) / f'enroll_study_{key}.npz' if args.cache else None
+    if cache is not None and cache.is_file():
+        with np.load(cache, allow_pickle=False) as z:
+            arrays = {k: torch.from_numpy(z[k]) for k in z.files}
+    else:
+        full = [rotate_z(test[i][0], float(rng.uniform(0, 2 * np.pi))) for i in rest]
+        one_view = [simulate_view(test[i][0], np.random.default_rng([7, int(i)])).points
+                    for i in rest]
+        arrays = {'full': encode(full), 'view': encode(one_view)}
+        for c, i in chosen.items():
+            obj = test[i][0]
+            arrays[f'enroll_{c}'] = encode([v.points for v in simulate_views(
+                obj, args.enroll_views, seed=args.seed + i)])
+            arrays[f'query_{c}'] = encode([v.points for v in simulate_views(
+                obj, args.query_views, seed=args.seed + 1000 + i)])
+        if cache is not None:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(cache, **{k: v.numpy() for k, v in arrays.items()})
+    f_full, f_view = arrays['full'], arrays['view']
+    truth = test.labels[rest]
+    print(f'encoded {len(rest)} test objects twice in {time.perf_counter() - t0:.0f} s',
+          file=sys.stderr)
+
+    live = LiveBank(bf, lambda active: Recognizer(active, encoder=encoder),
+                    RefitPolicy(gamma='auto'))
+
+    def accuracy(feats, labels) -> float:
+        pred = live.current().model.classifier.classify(feats).labels
+        return float((pred == labels).mean())
+
+    before = {'complete': accuracy(f_full, truth), 'single_view': accuracy(f_view, truth)}
+    queries, query_labels, enroll_s, dups = [], [], [], 0
+    for c, i in chosen.items():
+        name = f'{c}_object_{i}'
+        t = time.perf_counter()
+        res = live.add(arrays[f'enroll_{c}'], name, source=f'enroll_study: '
+                       f'{args.enroll_views} views of test object {i}')
+        enroll_s.append(time.perf_counter() - t)
+        dups += res.duplicate_count
+        cid = live.current().class_names.index(name)
+        queries.append(arrays[f'query_{c}'])
+        query_labels += [cid] * len(arrays[f'query_{c}'])
+    snap = live.current()
+    q_pred = snap.model.classifier.classify(torch.cat(queries)).labels
+    q_true = np.asarray(query_labels)
+    per_object = {snap.class_names[c]: float((q_pred[q_true == c] == c).mean())
+                  for c in np.unique(q_true)}
+    as_category = float(np.mean([snap.class_names[p].split('_object_')[0] == MODELNET10[k]
+                                 for k, p in zip(np.repeat(np.arange(10), args.query_views),
+                                                 q_pred, strict=True)]))
+    after = {'complete': accuracy(f_full, truth), 'single_view': accuracy(f_view, truth)}
+    out = {
+        'bank': str(bf.bank.path), 'bank_version': snap.version, 'gamma': snap.bank.gamma,
+        'refit': snap.bank.meta['refit'], 'objects': chosen,
+        'new_objects_accuracy': float((q_pred == q_true).mean()),
+        'new_objects_per_object': per_object,
+        'new_objects_right_category_or_instance': as_category,
+        'existing_before': before, 'existing_after': after,
+        'existing_drop_points': {k: 100 * (before[k] - after[k]) for k in before},
+        'enroll_seconds_per_object_max': max(enroll_s),
+        'near_duplicates': dups,
+    }
+    print(json.dumps(out, indent=2))
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=2) + '\n')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

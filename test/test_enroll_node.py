@@ -1,0 +1,335 @@
+"""Live enrollment over real DDS: teach, predict, save, restart, forget, under load.
+
+The node runs in its own process on the tiny test bank (6 ModelNet40 classes); this test
+process is "another process" that enrolls through the node's topics and services.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+import time
+
+import numpy as np
+import pytest
+
+from node_testing import (NODE_FQN, TEST_NUM_POINTS, Harness, NodeProcess, assert_same_labels,
+                          cloud_msg, harness, latched_qos, latest_diagnostics, pick,
+                          reliable_qos, stamp, stamp_key, tiny_bank)
+
+__all__ = ['harness', 'tiny_bank']  # fixtures, imported so that pytest finds them
+
+TOPIC = 'objects'
+NEW = 'sofa'            # not one of the tiny bank's classes
+TIMEOUT_S = 60.0
+
+
+def _variants(obj: np.ndarray, n: int, seed: int) -> list[np.ndarray]:
+    """`n` scans of one object: subsampled, scaled, moved, noisy.
+
+    Same heading throughout: the tiny bank is not yaw-aligned.
+    """
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        pts = obj[rng.permutation(len(obj))[:int(rng.integers(600, 1024))]]
+        pts = pts * rng.uniform(0.4, 0.8) + rng.uniform(-3, 3, 3)
+        out.append((pts + rng.normal(0, 0.003, pts.shape)).astype(np.float32))
+    return out
+
+
+def _start(bank: Path, log: Path, **params) -> NodeProcess:
+    return NodeProcess({'bank_path': str(bank), 'num_points': TEST_NUM_POINTS,
+                        'input_topics': [TOPIC], 'qos_reliability': 'reliable',
+                        'qos_depth': 100, 'queue_size': 200, 'max_batch': 8, **params}, log)
+
+
+class Client:
+    """The other process's view of the node: publishers, collectors, service calls."""
+
+    def __init__(self, harness: Harness, node: NodeProcess) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from sensor_msgs.msg import PointCloud2
+        from std_msgs.msg import String
+
+        self.h, self.node = harness, node
+        self.pub = harness.node.create_publisher(PointCloud2, TOPIC, reliable_qos(200))
+        self.pub_cloud = harness.node.create_publisher(PointCloud2, f'{NODE_FQN}/enroll_cloud',
+                                                       reliable_qos(100))
+        # Own lists and subscriptions (harness.collect shares one list per topic across
+        # the module's clients), destroyed by close().
+        self.answers, self.names, self.diag = [], [], []
+        self._subs = [harness.node.create_subscription(t, topic, out.append, qos) for t, topic,
+                      out, qos in ((PointCloud2, f'{NODE_FQN}/classifications', self.answers,
+                                    reliable_qos(500)),
+                                   (String, f'{NODE_FQN}/class_names', self.names,
+                                    latched_qos()),
+                                   (DiagnosticArray, '/diagnostics', self.diag,
+                                    reliable_qos(50)))]
+        harness.wait_for_subscribers([self.pub, self.pub_cloud], node)
+        harness.spin_for(0.5)
+
+    def close(self) -> None:
+        for sub in self._subs:
+            self.h.node.destroy_subscription(sub)
+        for pub in (self.pub, self.pub_cloud):
+            self.h.node.destroy_publisher(pub)
+
+    def call(self, name: str) -> tuple[bool, str]:
+        from std_srvs.srv import Trigger
+        client = self.h.node.create_client(Trigger, f'{NODE_FQN}/{name}')
+        assert client.wait_for_service(timeout_sec=20.0), self.node.log()
+        future = client.call_async(Trigger.Request())
+        assert self.h.spin_until(future.done, TIMEOUT_S), self.node.log()
+        self.h.node.destroy_client(client)
+        return future.result().success, future.result().message
+
+    def set_param(self, name: str, value: str) -> None:
+        from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+        from rcl_interfaces.srv import SetParameters
+        client = self.h.node.create_client(SetParameters, f'{NODE_FQN}/set_parameters')
+        assert client.wait_for_service(timeout_sec=20.0)
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(
+            name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING,
+                                            string_value=value))]))
+        assert self.h.spin_until(future.done, TIMEOUT_S)
+        assert future.result().results[0].successful, future.result().results[0].reason
+        self.h.node.destroy_client(client)
+
+    def classes(self) -> list[str]:
+        return self.names[-1].data.split('\n') if self.names else []
+
+    def wait_classes(self, pred) -> list[str]:  # noqa: ANN001
+        assert self.h.spin_until(lambda: pred(self.classes()), TIMEOUT_S), (
+            self.classes(), self.node.log())
+        return self.classes()
+
+    def classify(self, clouds: list[np.ndarray], base: int) -> list[tuple[np.ndarray, ...]]:
+        """Publish each cloud, wait for its answer: [(class_id, score, topk_scores)]."""
+        from point_gn_ros.pointcloud2 import decode_classifications
+        keys = []
+        for i, cloud in enumerate(clouds):
+            keys.append((base + i, 0))
+            self.pub.publish(cloud_msg(cloud, 'base_link', stamp(*keys[-1])))
+            self.h.spin_for(0.02)
+        by_key = {}
+        assert self.h.spin_until(lambda: self._collect(keys, by_key), TIMEOUT_S), self.node.log()
+        out = []
+        for k in keys:
+            r = decode_classifications(by_key[k])
+            out.append((r['class_id'].copy(), r['score'].copy(), r['topk_scores'].copy()))
+        return out
+
+    def _collect(self, keys: list, by_key: dict) -> bool:
+        for m in self.answers:
+            by_key.setdefault(stamp_key(m.header), m)
+        return all(k in by_key for k in keys)
+
+
+def _labelled_scene(clouds: list[np.ndarray], label: str, sec: int):  # noqa: ANN202
+    """A scene cloud with the examples 5 m apart, and a Detection3DArray of the same stamp.
+
+    One labelled box around each example; the first box is turned by 90 degrees about z.
+    """
+    from geometry_msgs.msg import Quaternion
+    from std_msgs.msg import Header
+    from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
+
+    header = Header(frame_id='base_link', stamp=stamp(sec, 7))
+    arr = Detection3DArray(header=header)
+    placed = []
+    for i, cloud in enumerate(clouds):
+        pts = cloud - cloud.mean(axis=0) + np.array([5.0 * i, 0.0, 0.0], np.float32)
+        placed.append(pts)
+        det = Detection3D(header=header)
+        hyp = ObjectHypothesisWithPose()
+        hyp.hypothesis.class_id = label
+        det.results = [hyp]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        centre, size = (lo + hi) / 2, hi - lo + 0.01
+        det.bbox.center.position.x, det.bbox.center.position.y = float(centre[0]), float(centre[1])
+        det.bbox.center.position.z = float(centre[2])
+        if i == 0:   # the same box turned by 90 degrees about z: x and y sizes swap
+            det.bbox.center.orientation = Quaternion(z=np.sqrt(0.5), w=np.sqrt(0.5))
+            size = size[[1, 0, 2]]
+        det.bbox.size.x, det.bbox.size.y, det.bbox.size.z = (float(v) for v in size)
+        arr.detections.append(det)
+    return arr, cloud_msg(np.concatenate(placed), 'base_link', header.stamp)
+
+
+@pytest.fixture(scope='module')
+def sofa() -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Enrollment scans and other scans of one sofa (an object the bank has never seen)."""
+    xyz, _ = pick('test', (NEW,), 1)
+    return _variants(xyz[0], 6, seed=1), _variants(xyz[0], 8, seed=2)
+
+
+@pytest.fixture(scope='module')
+def others() -> list[np.ndarray]:
+    xyz, _ = pick('test', ('chair', 'lamp', 'airplane'), 2)
+    return [c * 0.6 + 1.0 for c in xyz]
+
+
+def test_enroll_predict_save_restart_forget(harness: Harness, tiny_bank: Path, tmp_path: Path,
+                                            sofa, others) -> None:  # noqa: ANN001
+    pytest.importorskip('vision_msgs.msg', reason='vision_msgs is built by '
+                        '../shared/ros/install-extras.sh (ROS installs: ros-jazzy-vision-msgs)')
+    from sensor_msgs.msg import PointCloud2
+    from vision_msgs.msg import Detection3DArray, LabelInfo
+
+    saved = tmp_path / 'taught.npz'
+    node = _start(tiny_bank, tmp_path / 'node1.log', save_bank_path=str(saved))
+    c = None
+    try:
+        c = Client(harness, node)
+        c.wait_classes(lambda names: len(names) == 6)
+        before = c.classify(others, 100)
+        pub = harness.node.create_publisher(Detection3DArray, f'{NODE_FQN}/enroll',
+                                            reliable_qos(10))
+        pub_scene = harness.node.create_publisher(PointCloud2, f'{NODE_FQN}/enroll_scene',
+                                                  reliable_qos(10))
+        harness.wait_for_subscribers([pub, pub_scene], node)
+        labels = []
+        label_sub = harness.node.create_subscription(LabelInfo, f'{NODE_FQN}/label_info',
+                                                     labels.append, latched_qos())
+        dets, scene = _labelled_scene(sofa[0], NEW, 11)
+        pub_scene.publish(scene)          # either may come first
+        pub.publish(dets)
+        names = c.wait_classes(lambda names: NEW in names)
+        assert names[:6] == [n for n in names if n != NEW] and names[-1] == NEW
+        assert harness.spin_until(lambda: labels and any(
+            v.class_name == NEW for v in labels[-1].class_map), 10.0), labels
+        assert [v.class_name for v in labels[-1].class_map] == names
+        harness.node.destroy_subscription(label_sub)
+        taught = c.classify(sofa[1] + others, 200)
+        sofa_id = names.index(NEW)
+        assert all(int(a[0][0]) == sofa_id for a in taught[:len(sofa[1])]), taught
+        assert c.h.spin_until(lambda: latest_diagnostics(c.diag, ': enrollment')
+                              .get('bank_version') == '1', 5.0)
+        diag = latest_diagnostics(c.diag, ': enrollment')
+        assert diag[f'count.{NEW}'] == '6' and diag['enroll_enrolled'] == '6'
+        ok, text = c.call('save_bank')
+        assert ok and 'v1' in text and saved.is_file(), text
+        # The node answered with exactly the bank it saved (offline Recognizer on the file).
+        assert_same_labels([int(a[0][0]) for a in taught], saved, sofa[1] + others)
+        assert len(before) == len(others) and all(int(a[0][0]) < 6 for a in before)
+    finally:
+        if c is not None:
+            c.close()
+        assert node.stop() == 0, node.log()
+    assert 'Traceback' not in node.log()
+
+    # Restart from the saved bank: the same answers, bit for bit.
+    node = _start(saved, tmp_path / 'node2.log')
+    c = None
+    try:
+        c = Client(harness, node)
+        assert c.wait_classes(lambda names: len(names) == 7)[-1] == NEW
+        again = c.classify(sofa[1] + others, 300)
+        # Labels bit for bit (the bank file is exact: test_enroll.py); scores may differ in
+        # the last float bits because micro-batches group the clouds differently.
+        for a, b in zip(taught, again, strict=True):
+            assert np.array_equal(a[0], b[0]), (a, b)
+            np.testing.assert_allclose(a[1], b[1], rtol=1e-5, atol=1e-12)
+            np.testing.assert_allclose(a[2], b[2], rtol=1e-5, atol=1e-12)
+        # Forget it: gone from the class list and from the answers.
+        c.set_param('enroll_class', NEW)
+        ok, text = c.call('forget')
+        assert ok and 'removed 6' in text, text
+        assert c.wait_classes(lambda names: NEW not in names and len(names) == 6)
+        gone = c.classify(sofa[1], 400)
+        assert all(0 <= int(a[0][0]) < 6 for a in gone)
+        ok, text = c.call('forget')
+        assert not ok and 'no class' in text
+    finally:
+        if c is not None:
+            c.close()
+        assert node.stop() == 0, node.log()
+
+
+def test_cloud_route_capture_and_guard_rails(harness: Harness, tiny_bank: Path, tmp_path: Path,
+                                            sofa) -> None:  # noqa: ANN001
+    node = _start(tiny_bank, tmp_path / 'node.log', enroll_class=NEW, min_examples_per_class=3)
+    c = None
+    try:
+        c = Client(harness, node)
+        c.wait_classes(lambda names: len(names) == 6)
+        # PointCloud2 route: 2 examples, one a repeat of the other -> a new class, not
+        # predicted yet (min 3).
+        for cloud in (sofa[0][1], sofa[0][1]):
+            c.pub_cloud.publish(cloud_msg(cloud, 'base_link', stamp(1, 0)))
+            harness.spin_for(0.05)
+        names = c.wait_classes(lambda names: NEW in names)
+        assert c.h.spin_until(lambda: latest_diagnostics(c.diag, ': enrollment')
+                              .get(f'count.{NEW}') == '2', 10.0), node.log()
+        diag = latest_diagnostics(c.diag, ': enrollment')
+        assert diag['predicted_classes'] == '6' and int(diag['enroll_near_duplicates']) >= 1
+        assert 'near-duplicate' in node.log()
+        assert all(int(a[0][0]) != names.index(NEW) for a in c.classify(sofa[1][:3], 100))
+        # Capture from the input topic: the answered objects become examples too.
+        assert c.call('stop_capture')[0] is False
+        ok, text = c.call('start_capture')
+        assert ok and NEW in text, text
+        c.classify(sofa[0][2:5], 200)
+        ok, text = c.call('stop_capture')
+        assert ok and '3 example(s)' in text, text
+        assert c.h.spin_until(lambda: latest_diagnostics(c.diag, ': enrollment')
+                              .get(f'count.{NEW}') == '5', 10.0)
+        assert latest_diagnostics(c.diag, ': enrollment')['predicted_classes'] == '7'
+        sofa_id = names.index(NEW)
+        assert all(int(a[0][0]) == sofa_id for a in c.classify(sofa[1], 300))
+        # Saving without a path is refused clearly.
+        ok, text = c.call('save_bank')
+        assert not ok and 'save_bank_path' in text
+    finally:
+        if c is not None:
+            c.close()
+        assert node.stop() == 0, node.log()
+
+
+def test_enrollment_under_load_loses_no_answer(harness: Harness, tiny_bank: Path,
+                                              tmp_path: Path, sofa) -> None:  # noqa: ANN001
+    """30 objects/s for 4 s while 20 examples are enrolled: no answer lost.
+
+    Every message is answered exactly once and the new class takes effect within the run.
+    """
+    xyz, _ = pick('test', (NEW,), 1)
+    examples = _variants(xyz[0], 20, seed=5)
+    node = _start(tiny_bank, tmp_path / 'node.log', enroll_class=NEW)
+    c = None
+    try:
+        c = Client(harness, node)
+        c.wait_classes(lambda names: len(names) == 6)
+        n, rate = 120, 30.0
+        t0 = time.monotonic()
+        sent_at = {}
+        for i in range(n):
+            while time.monotonic() < t0 + i / rate:
+                harness.executor.spin_once(timeout_sec=0.002)
+            key = (5000 + i, 0)
+            c.pub.publish(cloud_msg(sofa[1][i % len(sofa[1])], 'base_link', stamp(*key)))
+            sent_at[key] = time.monotonic()
+            if i == 30:
+                t_enroll = time.monotonic()
+                for ex in examples:
+                    c.pub_cloud.publish(cloud_msg(ex, 'base_link', stamp(2, 0)))
+        assert c.h.spin_until(lambda: len({stamp_key(m.header) for m in c.answers}
+                                          & set(sent_at)) == n, TIMEOUT_S), node.log()
+        keys = [stamp_key(m.header) for m in c.answers if stamp_key(m.header) in sent_at]
+        assert len(keys) == n, 'some message answered twice'
+        names = c.classes()
+        from point_gn_ros.pointcloud2 import decode_classifications
+        first_new = min((sent_at[stamp_key(m.header)] for m in c.answers
+                         if stamp_key(m.header) in sent_at
+                         and decode_classifications(m)['class_id'][0] == names.index(NEW)),
+                        default=None)
+        assert first_new is not None, node.log()
+        diag = latest_diagnostics(c.diag, ': pipeline')
+        assert diag['dropped'] == '0' and diag['errors'] == '0', diag
+        effect = first_new - t_enroll
+        print(f'enrollment of 20 examples at {rate:g} objects/s took effect after '
+              f'{effect:.2f} s (first answer naming it, publish to publish)')
+        assert effect < 5.0           # the goal (1 s) is measured by scripts/enroll_latency.py
+    finally:
+        if c is not None:
+            c.close()
+        assert node.stop() == 0, node.log()
