@@ -196,11 +196,10 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
         new_head = fit_head(z_view, compact, len(present), sel.gamma, sel.alpha, sel.lda_alpha,
                             sel.fusion_weight, sel.temperature)
         meta['head'] = {**meta.get('head', {}), **sel.head_meta()}
-    elif want_cv:
-        gamma_reason = 'kept (CV needs two classes)'
-        new_head = head
     else:
-        if policy.gamma == 'auto':
+        if want_cv:
+            gamma_reason = 'kept (CV needs two classes)'
+        elif policy.gamma == 'auto':
             gamma_reason = 'kept (auto: bank too large or a class too small for CV)'
         new_head = head
         if head is not None and head.lda_coef is not None:
