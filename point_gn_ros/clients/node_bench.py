@@ -31,6 +31,7 @@ def _run_phase(client: Client, node: NodeLauncher, clouds: Sequence[np.ndarray],
     """Publish at rate_hz for duration_s, then wait up to drain_s for the last answers."""
     period = 1.0 / rate_hz
     sent: dict[tuple[int, int], float] = {}
+    cpu0 = node.cpu_s()
     start = time.monotonic()
     next_t = start
     i = 0
@@ -74,6 +75,8 @@ def _run_phase(client: Client, node: NodeLauncher, clouds: Sequence[np.ndarray],
         'throughput_hz': round(len(got) / elapsed, 2),
         'latency_p50_ms': round(p50, 2),
         'latency_p99_ms': round(p99, 2),
+        # Node CPU per answered message: what the node costs, whatever else the box runs.
+        'node_cpu_ms_per_answer': round(1e3 * (node.cpu_s() - cpu0) / max(len(got), 1), 2),
     }
 
 
@@ -88,7 +91,8 @@ def bench_node(rates: Sequence[float] = (10, 30, 100), duration_s: float = 10.0,
     Returns one dict per phase: mode ('rate' | 'burst'), target_hz, input_hz (achieved),
     duration_s, sent, answered, dropped (sent - answered: dropped by the node's queues or
     lost), throughput_hz (answers per second from first send to last answer),
-    latency_p50_ms / latency_p99_ms (publish -> answer received), node_peak_rss_mb (VmHWM
+    latency_p50_ms / latency_p99_ms (publish -> answer received), node_cpu_ms_per_answer
+    (node process CPU time over the phase / answers), node_peak_rss_mb (VmHWM
     of the node process after that phase; cumulative), plus node_startup_s and the node
     parameters used. Raises RuntimeError if the node does not start.
     """
@@ -138,13 +142,15 @@ def bench_node(rates: Sequence[float] = (10, 30, 100), duration_s: float = 10.0,
 def format_rows(rows: Sequence[dict[str, Any]]) -> str:
     """A plain-text table of bench_node() results."""
     head = (f'{"mode":<6} {"target":>7} {"input":>7} {"sent":>5} {"answered":>8} '
-            f'{"dropped":>7} {"thru/s":>7} {"p50 ms":>8} {"p99 ms":>8} {"RSS MB":>7}')
+            f'{"dropped":>7} {"thru/s":>7} {"p50 ms":>8} {"p99 ms":>8} {"CPU ms":>7} '
+            f'{"RSS MB":>7}')
     lines = [head]
     for r in rows:
         lines.append(f'{r["mode"]:<6} {r["target_hz"]:>7g} {r["input_hz"]:>7.1f} '
                      f'{r["sent"]:>5} {r["answered"]:>8} {r["dropped"]:>7} '
                      f'{r["throughput_hz"]:>7.1f} {r["latency_p50_ms"]:>8.1f} '
-                     f'{r["latency_p99_ms"]:>8.1f} {r["node_peak_rss_mb"]:>7.0f}')
+                     f'{r["latency_p99_ms"]:>8.1f} {r["node_cpu_ms_per_answer"]:>7.2f} '
+                     f'{r["node_peak_rss_mb"]:>7.0f}')
     return '\n'.join(lines)
 
 
@@ -165,13 +171,16 @@ def bench_rows(quick: bool = False, **kwargs: Any) -> list[dict[str, Any]]:
     for r in results:
         label = f'node {r["target_hz"]:g} Hz in' if r['mode'] == 'rate' else 'node burst'
         note = (f'{r["answered"]}/{r["sent"]} answered, {r["dropped"]} dropped, input '
-                f'{r["input_hz"]:.0f}/s, best effort, DDS, 1 process')
+                f'{r["input_hz"]:.0f}/s, reliable, DDS, 1 process')
         rows += [dict(section='node', what=f'{label}: answered', value=r['throughput_hz'],
                       unit='msg/s', note=note),
                  dict(section='node', what=f'{label}: latency p50', value=r['latency_p50_ms'],
                       unit='ms', note='publish -> answer received'),
                  dict(section='node', what=f'{label}: latency p99', value=r['latency_p99_ms'],
-                      unit='ms', note='')]
+                      unit='ms', note=''),
+                 dict(section='node', what=f'{label}: node CPU per answer',
+                      value=r['node_cpu_ms_per_answer'], unit='ms',
+                      note='node process user+system CPU over the phase / answers')]
     if results:
         params = results[-1]['node_params']
         rows.append(dict(section='node', what='node peak RSS', value=results[-1][

@@ -108,6 +108,17 @@ class NodeLauncher:
             pass
         return float('nan')
 
+    def cpu_s(self) -> float:
+        """CPU seconds (user + system) the node process has used, or NaN once it has exited.
+
+        Robust on a shared machine, unlike wall-clock throughput.
+        """
+        try:
+            fields = Path(f'/proc/{self.pid}/stat').read_text().rsplit(')', 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+        except (OSError, IndexError, ValueError):
+            return float('nan')
+
     def stop(self, timeout: float = 20.0) -> int:
         """SIGINT, wait (SIGKILL after `timeout`); returns the exit code."""
         if self.proc.poll() is None:
