@@ -42,7 +42,7 @@ from typing import Any
 
 import rclpy
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, ManagedEntity, TransitionCallbackReturn
 import rclpy.logging
 from rclpy.parameter import Parameter
@@ -459,9 +459,9 @@ def main(args: list[str] | None = None) -> int:
             autostart(node)
         else:
             node.get_logger().info('waiting for a lifecycle manager (autostart is false)')
-        # Two threads: the enrollment services (own callback group) may wait for a save or
-        # a refit without holding up the input callbacks.
-        executor = MultiThreadedExecutor(num_threads=2)
+        # One thread: rclpy's multi-threaded executor tripled the latency at 100 objects/s
+        # (BENCHMARKS.md); services that wait (enrollment saves) are coroutines instead.
+        executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

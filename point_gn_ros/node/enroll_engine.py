@@ -137,13 +137,23 @@ class EnrollEngine:
 
     def forget(self, class_name: str, source: str) -> tuple[bool, str]:
         """Remove a class (on the committer, in order with pending commits); waits for it."""
-        return self._wait(self._committer.submit(self._remove, class_name.strip(), source))
+        return self._wait(self.forget_later(class_name, source))
+
+    def forget_later(self, class_name: str, source: str) -> Future:
+        """Queue the removal of a class on the committer -> Future of (ok, message)."""
+        return self._committer.submit(self._remove, class_name.strip(), source)
 
     def save(self, path: str) -> tuple[bool, str]:
         """Atomically write the current version to path (in order with commits); waits."""
+        return self._wait(self.save_later(path))
+
+    def save_later(self, path: str) -> Future:
+        """Queue an atomic save of the current version -> Future of (ok, message)."""
         if not path:
-            return False, 'set the save_bank_path parameter first'
-        return self._wait(self._committer.submit(self._save, path))
+            done: Future = Future()
+            done.set_result((False, 'set the save_bank_path parameter first'))
+            return done
+        return self._committer.submit(self._save, path)
 
     # ------------------------------------------------------------------ worker hooks
 

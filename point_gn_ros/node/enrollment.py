@@ -26,6 +26,7 @@ worker between micro-batches (node/enroll_engine.py).
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 import threading
 import time
 from typing import Any
@@ -38,6 +39,7 @@ from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.lifecycle import ManagedEntity, TransitionCallbackReturn
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future as RclpyFuture
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
@@ -139,8 +141,8 @@ class Enrollment(ManagedEntity):
             self._subs += [
                 node.create_subscription(Detection3DArray, '~/enroll', self._on_detections, qos),
                 node.create_subscription(PointCloud2, '~/enroll_scene', self._on_scene, qos)]
-        # Services may wait for a save or a refit: their own group, so that with the
-        # node's multi-threaded executor they never hold up the input callbacks.
+        # Services that wait for a save or a refit are coroutines (see _finished): they never
+        # hold up the input callbacks of the node's single-threaded executor.
         group = MutuallyExclusiveCallbackGroup()
         self._services = [
             node.create_service(Trigger, f'~/{name}', handler, callback_group=group)
@@ -279,14 +281,29 @@ class Enrollment(ManagedEntity):
     def _stop_capture(self, request: Any, response: Any) -> Any:
         return _answer(response, *self.engine.stop_capture())
 
-    def _forget(self, request: Any, response: Any) -> Any:
+    async def _forget(self, request: Any, response: Any) -> Any:
         name = self._param('enroll_class')
         if not name:
             return _answer(response, False, 'set the enroll_class parameter first')
-        return _answer(response, *self.engine.forget(name, '~/forget'))
+        return _answer(response, *await self._finished(self.engine.forget_later(name,
+                                                                                '~/forget')))
 
-    def _save_bank(self, request: Any, response: Any) -> Any:
-        return _answer(response, *self.engine.save(self._param('save_bank_path')))
+    async def _save_bank(self, request: Any, response: Any) -> Any:
+        path = self._param('save_bank_path')
+        return _answer(response, *await self._finished(self.engine.save_later(path)))
+
+    async def _finished(self, fut: Future) -> tuple[bool, str]:
+        """The committer's (ok, message), awaited without holding the executor.
+
+        The node spins a single-threaded executor (a multi-threaded one tripled the
+        latency, BENCHMARKS.md); a service that blocked on a save would stall every input
+        callback meanwhile, so it yields until the committer is done instead.
+        """
+        done = RclpyFuture(executor=self.node.executor)
+        done.add_done_callback(lambda _: None)   # scheduled on completion: wakes the executor
+        fut.add_done_callback(lambda _: done.set_result(None))
+        await done
+        return fut.result()
 
     def _param(self, name: str) -> str:
         return str(self.node.get_parameter(name).value or '').strip()
