@@ -105,6 +105,20 @@ def test_hidden_point_removal_sees_one_face_of_a_cube() -> None:
         assert not np.isclose(xyz[idx, 2], -half).any()       # never the far face
 
 
+def test_hidden_point_removal_on_degenerate_clouds() -> None:
+    # Too few points for a hull, a flat patch seen from above, a line, one repeated point:
+    # everything is seen, nothing fails.
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 3):
+        assert len(simulate_view(rng.normal(size=(n, 3)).astype(np.float32), 0).indices) == n
+    plane = np.zeros((50, 3), np.float32)
+    plane[:, :2] = rng.uniform(-1, 1, (50, 2))
+    line = np.zeros((50, 3), np.float32)
+    line[:, 0] = np.linspace(-1, 1, 50)
+    for xyz in (plane, line, np.ones((20, 3), np.float32)):
+        np.testing.assert_array_equal(simulate_view(xyz, 0, CLEAN).indices, np.arange(len(xyz)))
+
+
 def test_zbuffer_protocol_is_the_harsher_one() -> None:
     # Round 1's scans (z-buffer, dropout, range falloff) stay available and keep fewer points.
     for xyz in (sphere(1024), cube(1024)):
