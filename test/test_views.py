@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from point_gn_ros.bank.selection import stratified_folds
-from point_gn_ros.core.views import (DEFAULT_VIEW_CONFIG, ZBUFFER_VIEW_CONFIG, ViewConfig,
+from point_gn_ros.core.views import (DEFAULT_VIEW_CONFIG, VIEW_PROTOCOLS, ZBUFFER_VIEW_CONFIG,
+                                     ViewConfig,
                                      camera_position, hpr_indices, point_spacing,
                                      simulate_view, simulate_views, visible_indices)
 from point_gn_ros.datasets.views import ViewsDataset
@@ -125,6 +126,18 @@ def test_zbuffer_protocol_is_the_harsher_one() -> None:
         hpr = [len(simulate_view(xyz, s).indices) for s in range(10)]
         zbuf = [len(simulate_view(xyz, s, ZBUFFER_VIEW_CONFIG).indices) for s in range(10)]
         assert np.mean(zbuf) < 0.75 * np.mean(hpr), (hpr, zbuf)
+
+
+def test_mixed_protocol_shares_the_views_in_blocks() -> None:
+    # 'mixed' (bank build): view j uses cfg[j * len // k], the same scan the single protocol
+    # gives for that view (same seed, azimuth and noise), so caches and CV stay comparable.
+    xyz = cube(1500)
+    mixed = simulate_views(xyz, 4, 3, VIEW_PROTOCOLS['mixed'])
+    hpr = simulate_views(xyz, 4, 3, DEFAULT_VIEW_CONFIG)
+    zbuf = simulate_views(xyz, 4, 3, ZBUFFER_VIEW_CONFIG)
+    for j, expect in enumerate((hpr[0], hpr[1], zbuf[2], zbuf[3])):
+        np.testing.assert_array_equal(mixed[j].points, expect.points)
+    assert not np.array_equal(hpr[2].indices, zbuf[2].indices)
 
 
 def test_views_are_subsets_with_bounded_noise_and_seeded() -> None:

@@ -80,7 +80,7 @@ def _eval(args: argparse.Namespace) -> int:
     source = ds
     if args.single_view:
         # One scan per object, turned by a random yaw as well (seeded by --seed).
-        source = ViewsDataset(ds, 1, args.seed, VIEW_PROTOCOLS[args.view_protocol],
+        source = ViewsDataset(ds, 1, args.seed, VIEW_PROTOCOLS[args.view_protocol][0],
                               include_full=False, random_yaw=True)
     elif args.random_yaw is not None:
         # The complete objects, each turned by a seeded random yaw (cached like the rest).

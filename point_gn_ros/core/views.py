@@ -85,8 +85,11 @@ class ViewConfig:
 DEFAULT_VIEW_CONFIG = ViewConfig()
 # Round 1's scans: splatted z-buffer, up to 10 % dropout, returns thinning with range.
 ZBUFFER_VIEW_CONFIG = ViewConfig(visibility='zbuffer', dropout=(0.0, 0.1), falloff=1.0)
-# Named scan protocols (`--view-protocol` of eval and bank build).
-VIEW_PROTOCOLS = {'hpr': DEFAULT_VIEW_CONFIG, 'zbuffer': ZBUFFER_VIEW_CONFIG}
+# Named scan protocols (`--view-protocol` of eval and bank build). 'mixed' (bank build only):
+# the first half of an object's K views with hidden point removal, the rest z-buffer scans.
+VIEW_PROTOCOLS: dict[str, tuple[ViewConfig, ...]] = {
+    'hpr': (DEFAULT_VIEW_CONFIG,), 'zbuffer': (ZBUFFER_VIEW_CONFIG,),
+    'mixed': (DEFAULT_VIEW_CONFIG, ZBUFFER_VIEW_CONFIG)}
 
 
 @dataclass(frozen=True)
@@ -250,17 +253,20 @@ def simulate_view(xyz: np.ndarray, seed: int | np.random.Generator = 0,
 
 
 def simulate_views(xyz: np.ndarray, k: int, seed: int = 0,
-                   cfg: ViewConfig = ViewConfig()) -> list[View]:
+                   cfg: ViewConfig | tuple[ViewConfig, ...] = ViewConfig()) -> list[View]:
     """K seeded views of one cloud at evenly spread azimuths (random offset): list of View.
 
     Spreading the azimuths (one per 360/k degree sector) covers every side of the object with
-    few views; view j depends only on (seed, j, k) and the configuration.
+    few views; view j depends only on (seed, j, k) and its configuration. cfg: one
+    configuration, or several that share the views in blocks (view j uses cfg[j * len // k]).
     """
+    cfgs = cfg if isinstance(cfg, tuple) else (cfg,)
     offset = np.random.default_rng([seed, 0x5EED]).uniform(0.0, 2 * np.pi)
-    sp = point_spacing(xyz) if cfg.visibility == 'zbuffer' else None
+    sp = point_spacing(xyz) if any(c.visibility == 'zbuffer' for c in cfgs) else None
     views = []
     for j in range(k):
         rng = np.random.default_rng([seed, j])
         az = offset + 2 * np.pi * (j + rng.uniform()) / k
-        views.append(simulate_view(xyz, rng, cfg, azimuth=az % (2 * np.pi), spacing=sp))
+        views.append(simulate_view(xyz, rng, cfgs[j * len(cfgs) // k],
+                                   azimuth=az % (2 * np.pi), spacing=sp))
     return views
