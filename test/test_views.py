@@ -7,8 +7,7 @@ import pytest
 
 from point_gn_ros.bank.selection import stratified_folds
 from point_gn_ros.core.views import (DEFAULT_VIEW_CONFIG, VIEW_PROTOCOLS, ZBUFFER_VIEW_CONFIG,
-                                     ViewConfig,
-                                     camera_position, hpr_indices, point_spacing,
+                                     ViewConfig, camera_position, hpr_indices, point_spacing,
                                      simulate_view, simulate_views, visible_indices)
 from point_gn_ros.datasets.views import ViewsDataset
 from conftest import ArrayDataset
