@@ -66,7 +66,8 @@ default-bank: $(STAMP)
 # object whole + 4 simulated single-view scans (hidden point removal, issue 9's protocol;
 # VIEW_PROTOCOL=zbuffer for round 1's sparser scans, =mixed for half of each), yaw-aligned
 # (chosen over yaw augmentation by grouped CV), 4 scans at 224 PCA dims (22 MB; chosen over 8
-# at 128 by grouped CV), head knobs by grouped CV on every 9th object with its scans, then fitted on all.
+# at 128 by grouped CV), head knobs by grouped CV on every 9th object with its scans, then
+# fitted on all.
 # ~15 min on 2 cores; CACHE=DIR reuses encoded features.
 SENSOR_BANK ?= modelnet40_sensor.npz
 VIEW_PROTOCOL ?= hpr
