@@ -18,7 +18,7 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
         ('share/' + package_name + '/banks', glob('point_gn_ros/data/*default*.npz')),
     ],
-    install_requires=['setuptools', 'numpy', 'h5py', 'tqdm'],
+    install_requires=['setuptools', 'numpy', 'h5py', 'scipy', 'tqdm'],
     zip_safe=False,
     maintainer='point_gn_ros maintainers',
     maintainer_email='point-gn-ros@example.com',

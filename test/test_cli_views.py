@@ -37,15 +37,20 @@ def test_views_bank_single_view_eval_and_classify(tree: Path, tmp_path: Path,
     meta = json.loads(capsys.readouterr().out)
     assert meta['provenance']['count'] == 18 * 3          # each object whole + 2 scans
     assert meta['views']['views_per_object'] == 2 and meta['views']['rotation'] == 'yaw_align'
+    assert meta['views']['protocol'] == 'hpr'                 # issue 9's protocol by default
+    assert meta['views']['view_config']['visibility'] == 'hpr'
     assert meta['selection']['cv_grouped'] and meta['selection']['cv_entries'] == 9 * 3
     reports = []
     for extra in (['--single-view', '--seed', '3'], ['--single-view', '--seed', '3'],
-                  ['--random-yaw', '1']):
+                  ['--random-yaw', '1'], ['--single-view', '--seed', '3', '--view-protocol',
+                                          'zbuffer']):
         assert main(['eval', str(bank), str(tree), '--split', 'test', '--json', *extra]) == 0
         reports.append(json.loads(capsys.readouterr().out))
     assert reports[0]['single_view_seed'] == 3 and reports[0]['count'] == 12
     assert reports[0]['accuracy'] == reports[1]['accuracy']       # seeded scans
     assert reports[2]['random_yaw_seed'] == 1 and reports[2]['single_view_seed'] is None
+    assert reports[0]['view_protocol'] == 'hpr' and reports[3]['view_protocol'] == 'zbuffer'
+    assert reports[2]['view_protocol'] is None
     # classify: one object per file, optical frame turned upright
     cloud = np.load(next((tree / 'test' / 'chair').glob('*.npy')))
     optical = np.stack([cloud[:, 0], -cloud[:, 2], cloud[:, 1]], axis=1)   # z up -> y down

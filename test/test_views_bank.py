@@ -29,7 +29,8 @@ def test_views_bank_beats_complete_bank_on_single_view_scans() -> None:
     q = encode_clouds((scans[i][0] for i in range(len(scans))), enc, total=len(scans))
     acc = {name: float((Classifier(bank).classify(q).labels == test_y).mean())
            for name, bank in (('complete', complete_bank), ('views', views_bank))}
-    # Measured on this subset: complete 0.140, views 0.335 (200 scans; chance 0.025); the
-    # margin asserted leaves room for noise (one scan is 0.005).
-    assert acc['views'] >= acc['complete'] + 0.10, acc
+    # Measured on this subset (hidden point removal, simulator version 3): complete 0.325,
+    # views 0.620 (200 scans; chance 0.025); the margin asserted leaves room for noise (one
+    # scan is 0.005; z-buffer scans of round 1 measured 0.140 vs 0.335).
+    assert acc['views'] >= acc['complete'] + 0.20, acc
     assert np.all(views_bank.labels.numpy() == np.repeat(train_y, 3))

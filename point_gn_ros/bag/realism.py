@@ -1,8 +1,8 @@
 """Make clean dataset objects look a little more like segmented sensor data.
 
 Dataset clouds sit centred in the unit sphere, complete and noise-free. ``Realism.apply``
-optionally takes a simulated single-view scan (core/views.py: hidden points removed, sensor
-noise, dropout, range falloff; with the sensor frame, the scanned side faces the sensor), cuts a
+optionally takes a simulated single-view scan (core/views.py, its default protocol: hidden
+point removal, sensor noise; with the sensor frame, the scanned side faces the sensor), cuts a
 partial view, drops points, places the object in a sensor frame (metres, yawed, a few metres
 away) and adds Gaussian noise, in that order.
 """

@@ -43,8 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     w.add_argument('--partial', type=float, default=1.0, metavar='SHARE',
                    help='partial view: keep SHARE of the points by a random plane cut')
     w.add_argument('--single-view', action='store_true',
-                   help='a simulated single-view scan of each object (hidden points removed, '
-                        'sensor noise, dropout, range falloff; core/views.py); with '
+                   help='a simulated single-view scan of each object (hidden point removal, '
+                        'sensor noise: the default protocol of core/views.py); with '
                         '--sensor-frame the scanned side faces the sensor')
     w.add_argument('--seed', type=int, default=0, help='seed of the realism transforms')
     w.set_defaults(func=_write)

@@ -35,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'object and its views together. Without --yaw-align this is yaw '
                         'augmentation (no canonical frame)')
     b.add_argument('--view-seed', type=int, default=0, help='seed of the --views scans')
+    b.add_argument('--view-protocol', choices=('hpr', 'zbuffer', 'mixed'), default='hpr',
+                   help='how the --views scans are simulated (as in eval --single-view); '
+                        'mixed: half hidden point removal, half z-buffer scans')
     b.add_argument('--cv-every', type=int, default=1, metavar='N',
                    help='cross-validate on every N-th object (with its views) only, then fit '
                         'the chosen knobs on all (CV cost grows with the square of the bank)')
@@ -90,10 +93,13 @@ def _build(args: argparse.Namespace) -> int:
     _report_input(ds, cfg, args, dims)
     groups, views_meta = None, None
     if args.views:
+        from point_gn_ros.core.views import VIEW_PROTOCOLS
         from point_gn_ros.datasets.views import ViewsDataset
-        ds = ViewsDataset(ds, args.views, args.view_seed, include_full=True, random_yaw=True)
+        cfgs = VIEW_PROTOCOLS[args.view_protocol]
+        ds = ViewsDataset(ds, args.views, args.view_seed, cfgs if len(cfgs) > 1 else cfgs[0],
+                          include_full=True, random_yaw=True)
         groups = ds.groups
-        views_meta = {**ds.describe(),
+        views_meta = {**ds.describe(), 'protocol': args.view_protocol,
                       'rotation': 'yaw_align' if args.yaw_align else 'yaw_augment'}
         print(f'+ {args.views} simulated views per object: {len(ds)} entries '
               f'({views_meta["rotation"]})')

@@ -28,9 +28,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'copes with objects seen from any side')
     e.add_argument('--single-view', action='store_true',
                    help='classify one simulated single-view scan of every object instead '
-                        '(hidden points removed, noise, dropout, random yaw; core/views.py)')
+                        '(hidden points removed, noise, random yaw; core/views.py)')
     e.add_argument('--seed', type=int, default=0,
                    help='seed of the --single-view scans (default 0)')
+    e.add_argument('--view-protocol', choices=('hpr', 'zbuffer'), default='hpr',
+                   help="scans of --single-view: 'hpr' hidden point removal (~470 of 1,024 "
+                        "points, issue 9's protocol; default) or 'zbuffer' (round 1's harsher "
+                        'scans: z-buffer, dropout, range falloff, ~180 points)')
     e.add_argument('--open-set', default=None, metavar='N_OR_CLASSES',
                    help='open-set run: build BANK (or reuse it if it holds exactly these '
                         'classes) from the train split of N classes drawn with --open-set-seed '
@@ -59,6 +63,7 @@ def _eval(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.builder import encode_dataset
     from point_gn_ros.bank.classifier import Classifier
     from point_gn_ros.commands.common import open_dataset_from_args
+    from point_gn_ros.core.views import VIEW_PROTOCOLS
     from point_gn_ros.datasets.views import ViewsDataset
     from point_gn_ros.errors import DatasetError
     from point_gn_ros.evaluation.metrics import accuracy_report, format_report, plot_confusion
@@ -75,7 +80,8 @@ def _eval(args: argparse.Namespace) -> int:
     source = ds
     if args.single_view:
         # One scan per object, turned by a random yaw as well (seeded by --seed).
-        source = ViewsDataset(ds, 1, args.seed, include_full=False, random_yaw=True)
+        source = ViewsDataset(ds, 1, args.seed, VIEW_PROTOCOLS[args.view_protocol][0],
+                              include_full=False, random_yaw=True)
     elif args.random_yaw is not None:
         # The complete objects, each turned by a seeded random yaw (cached like the rest).
         source = ViewsDataset(ds, 0, args.random_yaw, include_full=True, random_yaw=True)
@@ -86,14 +92,16 @@ def _eval(args: argparse.Namespace) -> int:
     report = accuracy_report(ds.labels, res.labels, bank.class_names)
     report.update(bank=str(bank.path), dataset=str(ds.path), split=ds.split,
                   gamma=clf.gamma, random_yaw_seed=args.random_yaw,
-                  single_view_seed=args.seed if args.single_view else None)
+                  single_view_seed=args.seed if args.single_view else None,
+                  view_protocol=args.view_protocol if args.single_view else None)
     if args.confusion:
         plot_confusion(report['confusion'], bank.class_names, args.confusion,
                        f'{Path(ds.path).name} [{ds.split}]: {100 * report["accuracy"]:.2f} %')
     if args.json:
         print(json.dumps({k: v for k, v in report.items() if k != 'confusion'}, indent=2))
     else:
-        what = f' single-view scans (seed {args.seed})' if args.single_view else ''
+        what = (f' single-view scans ({args.view_protocol}, seed {args.seed})'
+                if args.single_view else '')
         print(format_report(report, f'{Path(ds.path).name} [{ds.split}]{what} vs '
                                     f'{bank.path.name}'))
     return 0

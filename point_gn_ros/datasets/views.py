@@ -26,12 +26,17 @@ class ViewsDataset(Dataset):
     """
 
     def __init__(self, base: Dataset, views: int, seed: int = 0,
-                 cfg: ViewConfig = DEFAULT_VIEW_CONFIG, include_full: bool = True,
+                 cfg: ViewConfig | tuple[ViewConfig, ...] = DEFAULT_VIEW_CONFIG,
+                 include_full: bool = True,
                  random_yaw: bool = False,
                  memoize: bool = False, sources: np.ndarray | None = None) -> None:
         if views < 0 or (views == 0 and not include_full):
             raise ValueError(f'views must be >= 1 (or >= 0 with include_full), got {views}')
+        # cfg: one view configuration, or several sharing the K views in blocks (simulate_views)
         self.base, self.views, self.seed, self.cfg = base, views, seed, cfg
+        cfgs = cfg if isinstance(cfg, tuple) else (cfg,)
+        cfg_key = (sorted(cfgs[0].to_dict().items()) if len(cfgs) == 1
+                   else [sorted(c.to_dict().items()) for c in cfgs])
         self.include_full, self.random_yaw = include_full, random_yaw
         # sources: (S,) int64 indices of the base objects used (default: all of them).
         self.sources = (np.arange(len(base), dtype=np.int64) if sources is None
@@ -41,7 +46,7 @@ class ViewsDataset(Dataset):
         first = -1 if include_full else 0
         self.view_index = np.tile(np.arange(first, views, dtype=np.int64), len(self.sources))
         spec = (f'views={views},seed={seed},full={int(include_full)},'
-                f'yaw={int(random_yaw)},cfg={sorted(cfg.to_dict().items())}')
+                f'yaw={int(random_yaw)},cfg={cfg_key}')
         if views:
             spec += f',sim={SIMULATOR_VERSION}'
         if sources is not None:
@@ -58,7 +63,9 @@ class ViewsDataset(Dataset):
         """Provenance for bank metadata: what was simulated, from what, how."""
         return {'source_split': self.base.split, 'views_per_object': self.views,
                 'include_full': self.include_full, 'random_yaw': self.random_yaw,
-                'seed': self.seed, 'view_config': self.cfg.to_dict(),
+                'seed': self.seed,
+                'view_config': ([c.to_dict() for c in self.cfg] if isinstance(self.cfg, tuple)
+                                else self.cfg.to_dict()),
                 'simulator_version': SIMULATOR_VERSION,
                 'sources': int(len(self.sources))}
 
