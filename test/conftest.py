@@ -65,6 +65,22 @@ def load_modelnet_subset(split: str, per_class: int, offset: int = 0
     return xyz[pick], labels[pick], list(names)
 
 
+def write_npy_tree(root: Path, classes: tuple[str, ...], per_class: dict[str, int],
+                   scale: float = 1.0, offset: float = 0.0) -> Path:
+    """A folder-tree dataset `root/<split>/<class>/<class>_<i>.npy` of real ModelNet40 objects.
+
+    per_class: split -> objects per class; each cloud is written as xyz * scale + offset.
+    """
+    for split, n in per_class.items():
+        xyz, labels, names = load_modelnet_subset(split, n)
+        for name in classes:
+            folder = root / split / name
+            folder.mkdir(parents=True)
+            for i, cloud in enumerate(xyz[labels == names.index(name)]):
+                np.save(folder / f'{name}_{i}.npy', cloud * scale + offset)
+    return root
+
+
 class ArrayDataset:
     """In-memory dataset with the Dataset contract (for tests and tiny banks)."""
 

@@ -5,7 +5,7 @@ from pathlib import Path
 import subprocess
 import sys
 
-from conftest import load_modelnet_subset
+from conftest import load_modelnet_subset, write_npy_tree
 import numpy as np
 import pytest
 
@@ -17,15 +17,9 @@ CLASSES = ('chair', 'lamp', 'airplane')
 @pytest.fixture(scope='module')
 def tree(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A folder tree dataset of real ModelNet40 objects: train/test x 3 classes, .npy files."""
-    root = tmp_path_factory.mktemp('tree')
-    for split, per_class in (('train', 8), ('test', 4)):
-        xyz, labels, names = load_modelnet_subset(split, per_class)
-        for name in CLASSES:
-            folder = root / split / name
-            folder.mkdir(parents=True)
-            for i, cloud in enumerate(xyz[labels == names.index(name)]):
-                np.save(folder / f'{name}_{i}.npy', cloud * 0.5 + 2.0)  # metres, offset
-    return root
+    # In metres, offset from the origin, as a user's own scans would be.
+    return write_npy_tree(tmp_path_factory.mktemp('tree'), CLASSES, {'train': 8, 'test': 4},
+                          scale=0.5, offset=2.0)
 
 
 @pytest.fixture(scope='module')

@@ -3,7 +3,7 @@
 import json
 from pathlib import Path
 
-from conftest import load_modelnet_subset
+from conftest import write_npy_tree
 import numpy as np
 import pytest
 
@@ -16,15 +16,7 @@ CLASSES = ('chair', 'lamp', 'airplane')
 @pytest.fixture(scope='module')
 def tree(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A folder tree of real ModelNet40 objects: train/test x 3 classes, .npy files."""
-    root = tmp_path_factory.mktemp('tree')
-    for split, per_class in (('train', 6), ('test', 4)):
-        xyz, labels, names = load_modelnet_subset(split, per_class)
-        for name in CLASSES:
-            folder = root / split / name
-            folder.mkdir(parents=True)
-            for i, cloud in enumerate(xyz[labels == names.index(name)]):
-                np.save(folder / f'{name}_{i}.npy', cloud)
-    return root
+    return write_npy_tree(tmp_path_factory.mktemp('tree'), CLASSES, {'train': 6, 'test': 4})
 
 
 def test_views_bank_single_view_eval_and_classify(tree: Path, tmp_path: Path,
