@@ -198,10 +198,11 @@ class EnrollEngine:
         try:
             res = self.live.add(torch.cat(req.feats), req.class_name, req.source)
         except (EnrollError, PointGNError, ValueError) as exc:
-            self._error(f'enrollment of {req.class_name!r} refused: {exc}')
+            self.report_error(f'enrollment of {req.class_name!r} refused: {exc}')
             return
         except Exception as exc:  # noqa: BLE001 - the committer must outlive one request
-            self._error(f'enrollment of {req.class_name!r} failed: {type(exc).__name__}: {exc}')
+            self.report_error(f'enrollment of {req.class_name!r} failed: '
+                              f'{type(exc).__name__}: {exc}')
             return
         self.last_latency_s = time.monotonic() - req.received
         self._count('enrolled', res.count)
@@ -231,7 +232,7 @@ class EnrollEngine:
         try:
             written, version = self.live.save(path)
         except (OSError, PointGNError, ValueError) as exc:
-            self._error(f'saving the bank to {path} failed: {exc}')
+            self.report_error(f'saving the bank to {path} failed: {exc}')
             return False, f'saving to {path} failed: {exc}'
         self._count('saves', 1)
         self.last_save = (str(written), version)
@@ -243,7 +244,8 @@ class EnrollEngine:
         try:
             self._on_change(self.live.current(), res)
         except Exception as exc:  # noqa: BLE001 - the bank changed; reporting it must not undo it
-            self._error(f'publishing bank v{res.version} failed: {type(exc).__name__}: {exc}')
+            self.report_error(f'publishing bank v{res.version} failed: '
+                              f'{type(exc).__name__}: {exc}')
 
     # ------------------------------------------------------------------ misc
 
@@ -286,7 +288,8 @@ class EnrollEngine:
         with self._count_lock:
             self.counters[key] += n
 
-    def _error(self, text: str) -> None:
+    def report_error(self, text: str) -> None:
+        """Count an enrollment error (diagnostics `enroll_errors`) and warn, rate-limited."""
         self._count('errors', 1)
         self.last_error = text
         self._warn(('error',), text)

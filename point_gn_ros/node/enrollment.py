@@ -206,7 +206,7 @@ class Enrollment(ManagedEntity):
         try:
             return self.engine is not None and self.engine.step(self._pipeline.recognizer)
         except Exception as exc:  # noqa: BLE001 - the worker must outlive enrollment bugs
-            self.node.get_logger().error(f'enrollment step failed: {type(exc).__name__}: {exc}')
+            self.engine.report_error(f'enrollment step failed: {type(exc).__name__}: {exc}')
             return False
 
     def _swap(self, snap: Snapshot, result: EnrollResult) -> None:
