@@ -87,11 +87,17 @@ class Recognizer:
 
     def __init__(self, bank: FeatureBank, device: str = 'cpu', resample: ResampleMethod = 'fps',
                  top_k: int = 5, unknown_threshold: float | None = None,
-                 encoder: Encoder | None = None, threads: int | None = None) -> None:
+                 encoder: Encoder | None = None, threads: int | None = None,
+                 search: str = 'auto') -> None:
+        """Encoder + classifier for one bank.
+
+        search: the classifier's bank search, 'auto', 'exact' or 'indexed'
+        (bank/classifier.py; 'auto' indexes large banks once, here).
+        """
         self.bank = bank
         self.encoder = encoder or make_encoder(bank.config, device, threads=threads)
         bank.check_config(self.encoder.cfg)
-        self.classifier = Classifier(bank, device, unknown_threshold)
+        self.classifier = Classifier(bank, device, unknown_threshold, search=search)
         self.resample = resample
         self.top_k = top_k
 
@@ -99,10 +105,10 @@ class Recognizer:
     def from_bank(cls, path: str | os.PathLike[str] | None = None, device: str = 'cpu',
                   resample: ResampleMethod = 'fps', top_k: int = 5,
                   unknown_threshold: float | None = None,
-                  threads: int | None = None) -> 'Recognizer':
+                  threads: int | None = None, search: str = 'auto') -> 'Recognizer':
         """Load a bank (None: the shipped default) and build the matching encoder."""
         return cls(FeatureBank.load(path), device, resample, top_k, unknown_threshold,
-                   threads=threads)
+                   threads=threads, search=search)
 
     @property
     def class_names(self) -> list[str]:

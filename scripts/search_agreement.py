@@ -1,13 +1,18 @@
 #!/usr/bin/env python3
-"""Two-stage bank search (bank/search.py) against the full float32 search: labels.
+"""Two-stage bank search (bank/search.py) against the exact search: labels and cost.
 
 usage: scripts/search_agreement.py [--bank BANK] [--data DIR] [--split test]
-       [--cache DIR] [--candidates 128 256 512] [--coarse-dims 64 128]
-       [--replicate R --jitter S]
+       [--cache DIR] [--random-yaw SEED | --single-view --seed S]
+       [--candidates 256 512 1024] [--coarse-dims 128 256] [--replicate R --jitter S]
 
-Encodes the split with the bank's encoder configuration (cached with --cache), then
-counts the queries whose label differs between BankIndex.scores and the classifier's
-full search (bank.classifier.class_scores), and the largest vote-share difference.
+Encodes the split as `point_gn eval` does (complete objects, --random-yaw, or one
+--single-view scan per object; cached with --cache), then classifies it through the
+bank's Classifier (transform, head whitening, LDA fusion, temperature) twice: with the
+exact search (every entry votes) and with IndexedSearch at each (coarse dims, candidates).
+Reports labels differing, accuracies, the largest probability and novelty differences,
+the index build time (process CPU) and the thread CPU time of a lone query (median over
+--lone queries, each classified alone: Classifier.classify on one raw feature row, torch
+on one thread).
 --replicate R stands in for a large real bank: R copies of every entry, each copy but the
 first with Gaussian noise of std S per coordinate, renormalised (R = 10: 98,430 entries).
 """
@@ -15,6 +20,7 @@ first with Gaussian noise of std S per coordinate, renormalised (R = 10: 98,430 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 import time
 
@@ -22,11 +28,36 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.builder import encode_dataset
-from point_gn_ros.bank.classifier import class_scores
-from point_gn_ros.bank.search import BankIndex
+from point_gn_ros.bank.classifier import Classifier
+from point_gn_ros.bank.search import IndexedSearch
 from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset
+from point_gn_ros.datasets.views import ViewsDataset
 from point_gn_ros.recognizer import make_encoder
+
+
+def lone_query_ms(clf: Classifier, feats: torch.Tensor, count: int) -> float:
+    """Median thread CPU ms of clf.classify on one raw row, over `count` rows."""
+    clf.classify(feats[:1])                                   # warm-up
+    times = []
+    for i in range(min(count, len(feats))):
+        t0 = time.thread_time()
+        clf.classify(feats[i:i + 1])
+        times.append(time.thread_time() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def replicated(bank: FeatureBank, copies: int, jitter: float) -> FeatureBank:
+    """The bank with `copies` noisy copies of every vote-space row (the first exact)."""
+    if copies <= 1:
+        return bank
+    gen = torch.Generator().manual_seed(0)
+    feats = bank.features.float()
+    noisy = [feats] + [feats + jitter * torch.randn(feats.shape, generator=gen)
+                       for _ in range(copies - 1)]
+    return replace(bank, features=torch.nn.functional.normalize(torch.cat(noisy), dim=1),
+                   labels=bank.labels.repeat(copies))
 
 
 def main() -> None:
@@ -36,41 +67,55 @@ def main() -> None:
                                           'datasets' / 'modelnet40_1024'))
     ap.add_argument('--split', default='test')
     ap.add_argument('--cache', default=None, help='encoded-feature cache directory')
-    ap.add_argument('--candidates', type=int, nargs='+', default=[128, 256, 512])
-    ap.add_argument('--coarse-dims', type=int, nargs='+', default=[64, 128])
+    ap.add_argument('--random-yaw', type=int, default=None, metavar='SEED')
+    ap.add_argument('--single-view', action='store_true')
+    ap.add_argument('--seed', type=int, default=0, help='seed of the --single-view scans')
+    ap.add_argument('--candidates', type=int, nargs='+', default=[512])
+    ap.add_argument('--coarse-dims', type=int, nargs='+', default=[128])
     ap.add_argument('--replicate', type=int, default=1)
     ap.add_argument('--jitter', type=float, default=0.02)
+    ap.add_argument('--lone', type=int, default=200, help='lone queries timed')
     args = ap.parse_args()
+    torch.set_num_threads(1)
 
     bank = FeatureBank.load(args.bank)
     ds = open_dataset(args.data, split=args.split)
-    feats = encode_dataset(ds, make_encoder(bank.config), cache_dir=args.cache)
-    query = bank.transform(feats)
-    bank_feats, bank_labels = bank.features.float(), bank.labels
-    if args.replicate > 1:
-        gen = torch.Generator().manual_seed(0)
-        noisy = [bank_feats] + [bank_feats + args.jitter * torch.randn(
-            bank_feats.shape, generator=gen) for _ in range(args.replicate - 1)]
-        bank_feats = torch.nn.functional.normalize(torch.cat(noisy), dim=1)
-        bank_labels = bank_labels.repeat(args.replicate)
-    full = class_scores(query, bank_feats, bank_labels, bank.num_classes, bank.gamma).numpy()
+    source, what = ds, 'complete objects'
+    if args.single_view:
+        source = ViewsDataset(ds, 1, args.seed, VIEW_PROTOCOLS['hpr'][0], include_full=False,
+                              random_yaw=True)
+        what = f'single-view scans (seed {args.seed})'
+    elif args.random_yaw is not None:
+        source = ViewsDataset(ds, 0, args.random_yaw, include_full=True, random_yaw=True)
+        what = f'complete objects, random yaw {args.random_yaw}'
+    feats = encode_dataset(source, make_encoder(bank.config), cache_dir=args.cache)
+    bank = replicated(bank, args.replicate, args.jitter)
     true = np.asarray(ds.labels)
-    q = query.numpy()
-    print(f'{len(q)} {args.split} queries against {bank.path.name} ({len(bank_labels)} x '
-          f'{bank_feats.shape[1]}, gamma {bank.gamma:g}); full search accuracy '
-          f'{100 * (full.argmax(1) == true).mean():.2f} %')
+    exact = Classifier(bank, search='exact')
+    p_ex, nov_ex = exact.evaluate(feats)
+    lab_ex = p_ex.argmax(1).numpy()
+    print(f'{len(feats)} {args.split} {what} against {Path(bank.path).name} '
+          f'({len(bank.labels)} x {bank.features.shape[1]}, gamma {bank.gamma:g}); exact '
+          f'search: accuracy {100 * (lab_ex == true).mean():.2f} %, lone query '
+          f'{lone_query_ms(exact, feats, args.lone):.2f} ms CPU')
+    print('| coarse dims | candidates | coarse energy | build s CPU | labels differing | '
+          'accuracy | max prob. diff | max novelty diff | lone query ms CPU |\n'
+          '|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
     for dims in args.coarse_dims:
         for m in args.candidates:
-            index = BankIndex(bank_feats.numpy(), bank_labels.numpy(), bank.num_classes,
-                              coarse_dims=dims, candidates=m)
-            t0 = time.thread_time()
-            got = index.scores(q, bank.gamma)
-            dt = (time.thread_time() - t0) / len(q)
-            differ = int((got.argmax(1) != full.argmax(1)).sum())
-            print(f'coarse {index.coarse_dims} dims, {m} candidates: labels differing '
-                  f'{differ} of {len(q)}, max vote-share diff {np.abs(got - full).max():.2e}, '
-                  f'accuracy {100 * (got.argmax(1) == true).mean():.2f} %, '
-                  f'{dt * 1e3:.3f} ms CPU/query')
+            clf = Classifier(bank, search='exact')
+            t0 = time.process_time()      # numpy's BLAS may use more than this thread
+            clf.search = IndexedSearch(clf.features, clf.labels, bank.num_classes,
+                                       coarse_dims=dims, candidates=m)
+            build = time.process_time() - t0
+            p, nov = clf.evaluate(feats)
+            lab = p.argmax(1).numpy()
+            index = clf.search.index
+            print(f'| {index.coarse_dims} | {m} | {index.coarse_energy:.2f} | {build:.2f} | '
+                  f'{int((lab != lab_ex).sum())} of {len(lab)} | '
+                  f'{100 * (lab == true).mean():.2f} % | {float((p - p_ex).abs().max()):.2g} | '
+                  f'{float((nov - nov_ex).abs().max()):.2g} | '
+                  f'{lone_query_ms(clf, feats, args.lone):.2f} |', flush=True)
 
 
 if __name__ == '__main__':

@@ -11,6 +11,12 @@ with LDA log-posteriors and calibrates the result with a temperature:
 
 A plain-vote bank (format 1, or one CV chose the vote for) has probability = each
 class's share of the kernel votes, as before.
+
+Search (`search=`): 'exact' compares every query with every bank entry (torch);
+'indexed' uses bank/search.py's two-stage search (int8 coarse scan, exact rescoring of
+the best candidates, each query alone), built once per Classifier; 'auto' (default)
+picks 'indexed' for banks of at least `INDEX_MIN_ENTRIES` entries on the CPU, where a
+lone query would otherwise read the whole bank.
 """
 
 from __future__ import annotations
@@ -20,9 +26,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from point_gn_ros.bank.head import ExactSearch, VoteSearch
 from point_gn_ros.bank.store import FeatureBank
 
 UNKNOWN = -1
+SEARCHES = ('auto', 'exact', 'indexed')
+# 'auto' indexes banks this large: below it the exact scan is already cheap (shipped bank,
+# 9,843 x 640: ~1 ms a lone query) and one index build per enrollment is not worth it.
+INDEX_MIN_ENTRIES = 20_000
 # Upper bound on queries x bank entries held at once (float32 similarity block).
 _MAX_BLOCK = 1 << 24
 
@@ -77,6 +88,28 @@ def class_scores(query: torch.Tensor, bank_feats: torch.Tensor, bank_labels: tor
     return torch.cat(out) if out else torch.zeros(0, num_classes)
 
 
+def resolve_search(search: str, entries: int, device: torch.device | str = 'cpu',
+                   index_min_entries: int = INDEX_MIN_ENTRIES) -> str:
+    """'auto' -> 'indexed' for CPU banks of >= index_min_entries entries, else 'exact'."""
+    if search not in SEARCHES:
+        raise ValueError(f'search={search!r} must be one of {", ".join(SEARCHES)}')
+    if search != 'auto':
+        return search
+    big = entries >= index_min_entries
+    return 'indexed' if big and torch.device(device).type == 'cpu' else 'exact'
+
+
+def make_search(kind: str, bank_u: torch.Tensor, bank_labels: torch.Tensor,
+                num_classes: int) -> VoteSearch:
+    """The vote search `kind` ('exact' or 'indexed') over rows bank_u (N, d), labels (N,)."""
+    if kind == 'indexed':
+        from point_gn_ros.bank.search import IndexedSearch
+        return IndexedSearch(bank_u, bank_labels, num_classes)
+    if kind != 'exact':
+        raise ValueError(f'search kind {kind!r} must be exact or indexed')
+    return ExactSearch(bank_u, bank_labels, num_classes)
+
+
 class Classifier:
     """Classifies encoder features against a loaded bank with the bank's head.
 
@@ -91,8 +124,13 @@ class Classifier:
 
     def __init__(self, bank: FeatureBank, device: str = 'cpu',
                  unknown_threshold: float | None = None, gamma: float | None = None,
-                 novelty_threshold: float | None = None) -> None:
-        """gamma: override the bank's (comparisons only)."""
+                 novelty_threshold: float | None = None, search: str = 'auto',
+                 index_min_entries: int = INDEX_MIN_ENTRIES) -> None:
+        """Classifier of one bank version (the search is built here, once).
+
+        gamma: override the bank's (comparisons only); search: 'auto', 'exact' or
+        'indexed' (module docstring); index_min_entries: the size from which 'auto' indexes.
+        """
         self.bank = bank
         self.device = torch.device(device)
         self.head = bank.classifier_head.to(self.device)
@@ -102,6 +140,10 @@ class Classifier:
         self.transform = bank.transform.to(self.device)
         self.features = bank.features.to(self.device)
         self.labels = bank.labels.to(self.device)
+        self.search_kind = resolve_search(search, len(bank.labels), self.device,
+                                          index_min_entries)
+        self.search = make_search(self.search_kind, self.features, self.labels,
+                                  bank.num_classes)
         self.novelty_threshold = novelty_threshold or None
         if unknown_threshold is not None and unknown_threshold < 0:
             calib = bank.meta.get('unknown_calibration')
@@ -118,7 +160,7 @@ class Classifier:
     def evaluate(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """features: (B, D) raw encoder output -> probability (B, C), novelty (B,)."""
         z = self.transform(features.to(self.device))
-        return self.head.evaluate(z, self.features, self.labels, self.bank.num_classes)
+        return self.head.evaluate_with(z, self.search)
 
     @torch.no_grad()
     def scores(self, features: torch.Tensor) -> torch.Tensor:

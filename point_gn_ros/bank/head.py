@@ -21,6 +21,7 @@ whitened (u_i), so a query costs one (d, d) product more than the plain vote.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -79,21 +80,55 @@ class Head:
 
         -> probability (B, C) float32 (rows sum to 1), novelty (B,) float32.
         """
-        u = self.vote_space(z)
-        step = max(1, _MAX_BLOCK // max(1, bank_u.shape[0]))
-        logv, best = [], []
-        for q in u.split(step):
-            sims = q @ bank_u.T
-            logv.append(log_vote_shares(sims, bank_labels, num_classes, self.gamma))
-            best.append(sims.max(dim=1).values)
-        if not logv:
-            return torch.zeros(0, num_classes), torch.zeros(0)
-        fused = torch.cat(logv)
+        return self.evaluate_with(z, ExactSearch(bank_u, bank_labels, num_classes))
+
+    def evaluate_with(self, z: torch.Tensor, search: 'VoteSearch'
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`evaluate` with the kernel vote from `search` (exact or bank/search.py's index).
+
+        z: (B, d) transformed queries -> probability (B, C), novelty (B,), float32.
+        """
+        if z.shape[0] == 0:
+            return torch.zeros(0, search.num_classes), torch.zeros(0)
+        fused, best = search.log_votes(self.vote_space(z), self.gamma)
         lda = self.lda_log_probs(z)
         if lda is not None:
             fused = fused + self.fusion_weight * lda
         prob = torch.softmax(fused / self.temperature, dim=1)
-        return prob, (1.0 - torch.cat(best)).clamp_min(0.0)
+        return prob, (1.0 - best).clamp_min(0.0)
+
+
+class VoteSearch(Protocol):
+    """Where the kernel vote of vote-space queries comes from (ExactSearch, IndexedSearch)."""
+
+    num_classes: int
+
+    def log_votes(self, u: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Vote of u: (B, d) vote-space unit rows -> log shares (B, C), best cosine (B,).
+
+        The log shares follow `log_vote_shares` (floor per entry, -inf for absent classes).
+        """
+        ...
+
+
+class ExactSearch:
+    """Every bank entry votes: one (B, N) similarity block per group of queries.
+
+    bank_u: (N, d) vote-space rows; bank_labels: (N,) int64.
+    """
+
+    def __init__(self, bank_u: torch.Tensor, bank_labels: torch.Tensor, num_classes: int
+                 ) -> None:
+        self.bank_u, self.bank_labels, self.num_classes = bank_u, bank_labels, int(num_classes)
+
+    def log_votes(self, u: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
+        step = max(1, _MAX_BLOCK // max(1, self.bank_u.shape[0]))
+        logv, best = [], []
+        for q in u.split(step):
+            sims = q @ self.bank_u.T
+            logv.append(log_vote_shares(sims, self.bank_labels, self.num_classes, gamma))
+            best.append(sims.max(dim=1).values)
+        return torch.cat(logv), torch.cat(best)
 
 
 def log_vote_shares(sims: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,

@@ -16,16 +16,19 @@ Entries outside the candidates are far enough below the best that their votes ba
 count; when one would have changed the label, the labels differ: `bench` and
 `scripts/search_agreement.py` report how often against the full float32 search.
 
-Use (the classifier's wiring is the integrator's): `index = BankIndex(feats, labels,
-num_classes)` once per bank, then `index.scores(query, gamma)` wherever
-`class_scores(query, feats, labels, num_classes, gamma)` is called with large banks;
-both take unit rows (the bank transform applied) and return (B, C) vote shares.
+Use: `IndexedSearch` is the classifier's vote for large banks (bank/classifier.py picks
+it by bank size, `search='auto'`); `BankIndex.scores` gives plain vote shares like
+`classifier.class_scores`, for scripts and benchmarks.
 """
 
 from __future__ import annotations
 
-import numpy as np
+import threading
 
+import numpy as np
+import torch
+
+from point_gn_ros.bank.head import _LOGIT_FLOOR, _TINY
 from point_gn_ros.core import kernels
 
 # Rows used to find the principal axes (a sample: the rotation only steers the coarse
@@ -70,6 +73,7 @@ class BankIndex:
         self.features, self.labels, self.num_classes = feats, labels, int(num_classes)
         self.candidates = max(1, int(candidates))
         self._lib = kernels.load()
+        self._local = threading.local()
         r = min(d, max(32, coarse_dims // 32 * 32))
         # Principal axes of the (uncentred) second moment: they carry the most of every
         # dot product, so the leading coordinates approximate the cosines best.
@@ -97,13 +101,23 @@ class BankIndex:
         if self._lib is None:  # no C compiler: the same pass in numpy
             coarse = self.codes.astype(np.int32) @ q8.astype(np.int32)
             return np.sort(np.argsort(-coarse, kind='stable')[:m]).astype(np.int32)
-        coarse = np.empty(n, np.int32)
+        coarse, keys = self._scratch()
         self._lib.pgn_scan_i8(self.codes.ctypes.data, n, self.coarse_dims, q8.ctypes.data,
                               coarse.ctypes.data)
         idx = np.empty(m, np.int32)
-        keys = np.empty(n, np.int64)
         got = self._lib.pgn_top_m(coarse.ctypes.data, n, m, idx.ctypes.data, keys.ctypes.data)
         return idx[:got]
+
+    def _scratch(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-thread (N,) int32 scores and (N,) int64 keys, reused across queries.
+
+        Fresh arrays of a large bank's size cost page faults on every query.
+        """
+        bufs = getattr(self._local, 'bufs', None)
+        if bufs is None:
+            n = self.codes.shape[0]
+            bufs = self._local.bufs = (np.empty(n, np.int32), np.empty(n, np.int64))
+        return bufs
 
     def _dots(self, q: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
         """Exact float32 cosines of q (d,) with the given rows (all when None)."""
@@ -141,3 +155,45 @@ class BankIndex:
         return np.stack([vote_shares(self._dots(row, None), self.labels, self.num_classes,
                                      gamma) for row in q]) if len(q) else \
             np.zeros((0, self.num_classes), np.float32)
+
+
+class IndexedSearch:
+    """The head's kernel vote (`head.VoteSearch`) from a BankIndex's candidates.
+
+    Same semantics as `head.log_vote_shares` over the whole bank, evaluated on the
+    candidates of each query.
+
+    Every entry outside a query's candidates counts the floor vote exp(_LOGIT_FLOOR) of
+    the best entry, exactly as an entry that far below the best does in the full search;
+    classes absent from the bank get -inf. Each query is searched alone, so its result
+    never depends on the batch. bank_u: (N, d) vote-space unit rows; bank_labels: (N,).
+    """
+
+    def __init__(self, bank_u: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,
+                 coarse_dims: int = 128, candidates: int = 512) -> None:
+        self.num_classes = int(num_classes)
+        self.index = BankIndex(bank_u.detach().cpu().float().numpy(),
+                               bank_labels.detach().cpu().numpy(), num_classes,
+                               coarse_dims=coarse_dims, candidates=candidates)
+        self.counts = np.bincount(self.index.labels, minlength=self.num_classes)   # (C,)
+        self.absent = self.counts == 0
+
+    def log_votes(self, u: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """u: (B, d) vote-space unit rows -> log vote shares (B, C), best cosine (B,)."""
+        q = self.index._check(u.detach().cpu().float().numpy())
+        c, floor = self.num_classes, float(np.exp(_LOGIT_FLOOR))
+        logv = np.empty((q.shape[0], c), np.float64)
+        best = np.empty(q.shape[0], np.float32)
+        for b in range(q.shape[0]):
+            rows = self.index.candidates_for(q[b])
+            sims = self.index._dots(q[b], rows)                          # (M,) float32
+            lab = self.index.labels[rows]
+            best[b] = sims.max()
+            w = np.exp(np.maximum((sims.astype(np.float64) - best[b]) * gamma, _LOGIT_FLOOR))
+            votes = np.bincount(lab, weights=w, minlength=c)
+            votes += (self.counts - np.bincount(lab, minlength=c)) * floor  # the others
+            logv[b] = np.log(np.maximum(votes, _TINY))
+        logv[:, self.absent] = -np.inf
+        logv -= np.logaddexp.reduce(logv, axis=1, keepdims=True) if c else 0.0
+        return (torch.from_numpy(logv.astype(np.float32)).to(u.device),
+                torch.from_numpy(best).to(u.device))

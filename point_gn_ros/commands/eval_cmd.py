@@ -21,6 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='write the confusion matrix here')
     e.add_argument('--gamma', type=float, default=None,
                    help="override the bank's gamma (for comparisons only)")
+    e.add_argument('--search', choices=('auto', 'exact', 'indexed'), default='auto',
+                   help="bank search: 'exact' (every entry votes), 'indexed' (two-stage: int8 "
+                        "coarse scan, exact rescoring; each query alone) or 'auto' (indexed "
+                        'from 20,000 entries; default)')
     e.add_argument('--unknown-threshold', type=float, default=None,
                    help='open-set threshold on the top score (<0: the bank calibration)')
     e.add_argument('--random-yaw', type=int, default=None, metavar='SEED',
@@ -87,11 +91,12 @@ def _eval(args: argparse.Namespace) -> int:
         source = ViewsDataset(ds, 0, args.random_yaw, include_full=True, random_yaw=True)
     feats = encode_dataset(source, enc, args.batch_size, progress=not args.json,
                            cache_dir=Path(args.cache) if args.cache else None)
-    clf = Classifier(bank, args.device, args.unknown_threshold, gamma=args.gamma)
+    clf = Classifier(bank, args.device, args.unknown_threshold, gamma=args.gamma,
+                     search=args.search)
     res = clf.classify(torch.as_tensor(feats), top_k=1)
     report = accuracy_report(ds.labels, res.labels, bank.class_names)
     report.update(bank=str(bank.path), dataset=str(ds.path), split=ds.split,
-                  gamma=clf.gamma, random_yaw_seed=args.random_yaw,
+                  gamma=clf.gamma, search=clf.search_kind, random_yaw_seed=args.random_yaw,
                   single_view_seed=args.seed if args.single_view else None,
                   view_protocol=args.view_protocol if args.single_view else None)
     if args.confusion:
@@ -103,7 +108,7 @@ def _eval(args: argparse.Namespace) -> int:
         what = (f' single-view scans ({args.view_protocol}, seed {args.seed})'
                 if args.single_view else '')
         print(format_report(report, f'{Path(ds.path).name} [{ds.split}]{what} vs '
-                                    f'{bank.path.name}'))
+                                    f'{bank.path.name} ({clf.search_kind} search)'))
     return 0
 
 

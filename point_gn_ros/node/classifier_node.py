@@ -279,7 +279,7 @@ class ClassifierNode(LifecycleNode):
         encoder = make_encoder(bank.config, s.device, threads=s.torch_threads)
         try:
             return Recognizer(bank, s.device, s.resample, s.top_k,
-                              s.unknown_threshold or None, encoder=encoder)
+                              s.unknown_threshold or None, encoder=encoder, search=s.search)
         except ValueError as exc:       # e.g. unknown_threshold < 0 without a calibration
             raise NodeConfigError(str(exc)) from None
 

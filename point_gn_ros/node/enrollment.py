@@ -193,7 +193,7 @@ class Enrollment(ManagedEntity):
         from point_gn_ros.recognizer import Recognizer
         s, enc = self.node.settings, self.node.recognizer.encoder
         return Recognizer(bank, s.device, s.resample, s.top_k, s.unknown_threshold or None,
-                          encoder=enc)
+                          encoder=enc, search=s.search)
 
     # ------------------------------------------------------------------ worker hooks
 

@@ -44,6 +44,7 @@ class Settings:
     input_timeout_s: float = 10.0
     marker_lifetime_s: float = 2.0
     autostart: bool = True
+    search: str = 'auto'
 
 
 def _int_range(lo: int, hi: int) -> list[IntegerRange]:
@@ -107,6 +108,10 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     'marker_lifetime_s': (2.0, 'Lifetime of the RViz markers (s), so that objects vanish when '
                                'answers stop; 0 = until replaced.',
                           {'floating_point_range': _float_range(0.0, 3600.0)}),
+    'search': ('auto', "Bank search: 'exact' (every bank entry), 'indexed' (int8 coarse scan, "
+                       "exact rescoring of the best 512; built at bank load) or 'auto' "
+                       '(indexed from 20,000 entries on the CPU).',
+               {'additional_constraints': "one of 'auto', 'exact', 'indexed'"}),
     'autostart': (True, 'Walk the lifecycle to active at start (configure + activate), as a '
                         'plain node; false = wait for a lifecycle manager.', {}),
 }
@@ -116,7 +121,8 @@ LIVE = frozenset({'top_k', 'unknown_threshold', 'queue_size', 'marker_lifetime_s
                   'input_timeout_s'})
 
 CHOICES = {'resample': ('fps', 'random'), 'device': ('cpu', 'cuda'),
-           'qos_reliability': ('reliable', 'best_effort'), 'up_axis': UP_AXES}
+           'qos_reliability': ('reliable', 'best_effort'), 'up_axis': UP_AXES,
+           'search': ('auto', 'exact', 'indexed')}
 
 
 def settings_from_values(values: dict[str, Any]) -> Settings:

@@ -9,11 +9,12 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-#if defined(__AVX512BW__)
+#if defined(__AVX512BW__) || defined(__AVX2__)
 #include <immintrin.h>
 #endif
 
-/* out[i] = sum_j codes[i * r + j] * q[j]; codes (n, r) int8. */
+/* out[i] = sum_j codes[i * r + j] * q[j]; codes (n, r) int8, codes and q in [-127, 127]
+ * (what bank/search.py writes: the AVX2 path's int16 pair sums then cannot saturate). */
 void pgn_scan_i8(const int8_t *codes, int64_t n, int64_t r, const int8_t *q, int32_t *out) {
 #if defined(__AVX512BW__)
     if (r % 32 == 0 && r <= 512) {
@@ -36,6 +37,26 @@ void pgn_scan_i8(const int8_t *codes, int64_t n, int64_t r, const int8_t *q, int
                 acc = _mm512_add_epi32(acc, _mm512_madd_epi16(a, qv[j]));
             }
             out[i] = _mm512_reduce_add_epi32(_mm512_add_epi32(acc, acc2));
+        }
+        return;
+    }
+#elif defined(__AVX2__)
+    if (r % 32 == 0) {
+        /* |c| * (q sign c) summed by byte pairs (vpmaddubsw: <= 2 * 127 * 127, no
+         * saturation), then to int32 (vpmaddwd with ones): exact, like the plain loop */
+        const __m256i ones = _mm256_set1_epi16(1);
+        for (int64_t i = 0; i < n; ++i) {
+            const int8_t *row = codes + i * r;
+            __m256i acc = _mm256_setzero_si256();
+            for (int64_t j = 0; j < r; j += 32) {
+                const __m256i c = _mm256_loadu_si256((const void *)(row + j));
+                const __m256i qq = _mm256_loadu_si256((const void *)(q + j));
+                const __m256i p = _mm256_maddubs_epi16(_mm256_abs_epi8(c), _mm256_sign_epi8(qq, c));
+                acc = _mm256_add_epi32(acc, _mm256_madd_epi16(p, ones));
+            }
+            const __m128i s = _mm_add_epi32(_mm256_castsi256_si128(acc), _mm256_extracti128_si256(acc, 1));
+            const __m128i s2 = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4e));
+            out[i] = _mm_cvtsi128_si32(_mm_add_epi32(s2, _mm_shuffle_epi32(s2, 0xb1)));
         }
         return;
     }
