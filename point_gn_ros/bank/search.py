@@ -1,16 +1,18 @@
 """Two-stage search for large banks: an int8 coarse scan, then exact rescoring.
 
 The kernel vote of a query, sum over entries of exp(-gamma (1 - cos)) per class, is
-dominated by the nearest entries at the gammas the banks use (50-200): an entry 0.1
-below the best cosine weighs e^-5 (gamma 50) to e^-20 (gamma 200) of it. A lone query
+dominated by the nearest entries at the gammas the banks use (40-200): an entry 0.1
+below the best cosine weighs e^-4 (gamma 40) to e^-20 (gamma 200) of it. A lone query
 against a float32 bank must read the whole bank (100k x 512 x 4 B = 205 MB: ~7 ms at
 this core's ~28 GB/s). Instead:
 
 1. coarse pass: the bank rotated onto its principal axes (an orthogonal rotation, so
    dot products are unchanged), the leading `coarse_dims` coordinates kept as int8 (a
-   scale per coordinate); one int32 dot product per entry reads 1/16 of the bytes;
+   scale per coordinate; as many as hold 90 % of the bank's energy); one int32 dot
+   product per entry reads a quarter of the bytes per coordinate kept;
 2. the `candidates` best coarse scores are rescored exactly (float32, the full rows);
-3. votes come from those candidates only; every other entry's vote counts as 0.
+3. votes come from those candidates only; every other entry's vote counts as 0
+   (`BankIndex.scores`) or as the classifier's floor exp(-80) (`IndexedSearch`).
 
 Entries outside the candidates are far enough below the best that their votes barely
 count; when one would have changed the label, the labels differ: `bench` and
