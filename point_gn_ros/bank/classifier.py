@@ -9,6 +9,10 @@ with LDA log-posteriors and calibrates the result with a temperature:
   scores      (B,)    probability of the top class
   novelty     (B,)    1 - best cosine to any bank entry in the vote's space, [0, 2]
 
+A two-section bank (complete objects + single-view scans, `FeatureBank.views`) evaluates
+both sections and mixes them with the gate's p = probability that the query is a scan
+(bank/gate.py): probability = (1 - p) complete + p scans, novelty likewise.
+
 A plain-vote bank (format 1, or one CV chose the vote for) has probability = each
 class's share of the kernel votes, as before.
 
@@ -146,6 +150,10 @@ class Classifier:
                                           index_min_entries)
         self.search = make_search(self.search_kind, self.features, self.labels,
                                   bank.num_classes)
+        # A sectioned bank: the scan section has its own classifier, mixed by the gate.
+        self.views = None if bank.views is None else Classifier(
+            bank.views, device, gamma=None, search=search, index_min_entries=index_min_entries)
+        self.gate = None if bank.gate is None else bank.gate.to(self.device)
         self.novelty_threshold = novelty_threshold or None
         if unknown_threshold is not None and unknown_threshold < 0:
             calib = bank.meta.get('unknown_calibration')
@@ -161,8 +169,14 @@ class Classifier:
     @torch.no_grad()
     def evaluate(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """features: (B, D) raw encoder output -> probability (B, C), novelty (B,)."""
-        z = self.transform(features.to(self.device))
-        return self.head.evaluate_with(z, self.search)
+        features = features.to(self.device)
+        prob, novelty = self.head.evaluate_with(self.transform(features), self.search)
+        if self.views is None or self.gate is None:
+            return prob, novelty
+        p_scan = self.gate.scan_probability(features)
+        prob_v, novelty_v = self.views.evaluate(features)
+        g = p_scan[:, None]
+        return (1 - g) * prob + g * prob_v, (1 - p_scan) * novelty + p_scan * novelty_v
 
     @torch.no_grad()
     def scores(self, features: torch.Tensor) -> torch.Tensor:

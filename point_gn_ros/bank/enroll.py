@@ -29,7 +29,7 @@ import torch
 
 from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, ScatterStats,
                                      active_view, refit, vote_to_z)
-from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.store import FeatureBank, to_stored
 from point_gn_ros.errors import PointGNError
 
 # At most this many near-duplicate pairs are listed (the count is always exact).
@@ -123,6 +123,8 @@ class BankFile:
     stored: np.ndarray
     # Scatter statistics of the rows for a cheap LDA refit (not saved; see `with_stats`).
     stats: ScatterStats | None = field(default=None, compare=False, repr=False)
+    # A two-section bank's scan section (bank.views), with its own stored values.
+    views: 'BankFile | None' = None
 
     @classmethod
     def load(cls, path: str | os.PathLike[str] | None = None,
@@ -131,23 +133,29 @@ class BankFile:
         bank = FeatureBank.load(path, expected_config)
         with np.load(bank.path, allow_pickle=False) as z:
             stored = z['features']
-        return cls(bank, stored)
+            views = None if bank.views is None else cls(bank.views, z['views_features'])
+        return cls(bank, stored, views=views)
 
     @classmethod
     def of(cls, bank: FeatureBank, dtype: str | None = None) -> 'BankFile':
         """Wrap a bank never saved: features re-derived from their rounded stored values."""
         dtype = dtype or bank.meta.get('stored_dtype', 'float32')
-        stored = bank.features.cpu().numpy().astype(dtype)
+        stored = to_stored(bank.features, dtype)
         meta = dict(bank.meta, stored_dtype=dtype)
-        return cls(replace(bank, features=_from_stored(stored), meta=meta), stored)
+        views = None if bank.views is None else cls.of(bank.views, dtype)
+        out = replace(bank, features=_from_stored(stored), meta=meta,
+                      views=None if views is None else views.bank)
+        return cls(out, stored, views=views)
 
     def with_stats(self) -> 'BankFile':
         """The same, with ScatterStats when the bank's head has an LDA part (one pass)."""
         head = self.bank.head
+        views = None if self.views is None else self.views.with_stats()
         if self.stats is not None or head is None or head.lda_coef is None:
-            return self
+            return self if views is self.views else replace(self, views=views)
         z = vote_to_z(self.bank.features, head)
-        return replace(self, stats=ScatterStats.of(z, self.bank.labels, self.bank.num_classes))
+        return replace(self, stats=ScatterStats.of(z, self.bank.labels, self.bank.num_classes),
+                       views=views)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Atomic write of exactly this bank (see `save_atomic`)."""
@@ -160,8 +168,12 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
     """Add encoder features of new examples under `class_name` (new or existing class).
 
     features: (M, D) float32 raw encoder output (D = the bank's encoder feature_dim), M >= 1.
-    Returns a new bank (version + 1); `bf` is left untouched.
+    Returns a new bank (version + 1); `bf` is left untouched. A two-section bank takes the
+    examples into both sections (each through its own transform and head), so the class
+    is predicted whichever section the gate favours.
     """
+    if bf.views is not None:
+        return _both_sections(add_examples, bf, features, class_name, source, policy, when)
     bank, policy = bf.bank, policy or RefitPolicy()
     class_name = _check_name(class_name)
     if features.ndim != 2 or features.shape[0] == 0:
@@ -174,7 +186,7 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
         raise EnrollError('features hold non-finite values')
     z_new = bank.transform(features.float().cpu())                  # (M, d) unit rows
     u_new = z_new if bank.head is None else bank.head.vote_space(z_new)
-    stored_new = u_new.numpy().astype(bf.stored.dtype)
+    stored_new = to_stored(u_new, str(bf.stored.dtype))
     new = _from_stored(stored_new)                                   # (M, d) unit rows
     names = list(bank.class_names)
     new_class = class_name not in names
@@ -197,7 +209,12 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
 def remove_class(bf: BankFile, class_name: str, source: str = 'api',
                  policy: RefitPolicy | None = None, when: datetime | None = None
                  ) -> EnrollResult:
-    """Drop every entry of `class_name`; ids of the classes after it shift down by one."""
+    """Drop every entry of `class_name`; ids of the classes after it shift down by one.
+
+    A two-section bank loses the class in both sections.
+    """
+    if bf.views is not None:
+        return _both_sections(remove_class, bf, class_name, source, policy, when)
     bank, policy = bf.bank, policy or RefitPolicy()
     if class_name not in bank.class_names:
         raise EnrollError(f'no class {class_name!r} in the bank (classes: '
@@ -256,6 +273,9 @@ def save_atomic(bf: BankFile, path: str | os.PathLike[str]) -> Path:
     tmp = path.with_name(f'.{path.name}.{os.getpid()}.{threading.get_ident():x}.tmp.npz')
     # Casting float32 copies of the stored values back to their dtype is exact.
     exact = replace(bf.bank, features=torch.from_numpy(bf.stored.astype(np.float32)))
+    if bf.views is not None:
+        exact = replace(exact, views=replace(
+            bf.views.bank, features=torch.from_numpy(bf.views.stored.astype(np.float32))))
     try:
         exact.save(tmp, dtype=str(bf.stored.dtype))
         with open(tmp, 'rb') as f:
@@ -283,8 +303,24 @@ def _restore(bank: FeatureBank, stored: np.ndarray, moved: bool,
     """
     if not moved:          # rows already are normalize(stored), row by row
         return BankFile(bank, stored, stats)
-    stored = bank.features.numpy().astype(stored.dtype)
+    stored = to_stored(bank.features, str(stored.dtype))
     return BankFile(replace(bank, features=_from_stored(stored)), stored, stats)
+
+
+def _both_sections(op, bf: BankFile, *args: Any) -> EnrollResult:  # noqa: ANN001
+    """Run an enrollment operation on each section of a two-section bank, one timestamp.
+
+    -> the main section's result with the scan section's bank attached (the gate is kept:
+    it tells complete objects from scans, whatever their class).
+    """
+    *rest, when = args
+    when = when or datetime.now(UTC)
+    assert bf.views is not None
+    main = op(BankFile(replace(bf.bank, views=None, gate=None), bf.stored, bf.stats),
+              *rest, when)
+    views = op(bf.views, *rest, when)
+    bank = replace(main.bank, views=views.bank, gate=bf.bank.gate)
+    return replace(main, file=replace(main.file, bank=bank, views=views.file))
 
 
 def _from_stored(stored: np.ndarray) -> torch.Tensor:

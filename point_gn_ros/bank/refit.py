@@ -151,7 +151,12 @@ def active_view(bank: FeatureBank, min_examples: int) -> FeatureBank:
     keep = ok[bank.labels]
     if not bool(keep.any()):
         raise RefitError(f'no class has {min_examples} example(s) yet: nothing to predict')
-    return replace(bank, features=bank.features[keep], labels=bank.labels[keep])
+    views = None
+    if bank.views is not None:     # the same classes in the scan section (counted here)
+        vkeep = ok[bank.views.labels]
+        views = replace(bank.views, features=bank.views.features[vkeep],
+                        labels=bank.views.labels[vkeep])
+    return replace(bank, features=bank.features[keep], labels=bank.labels[keep], views=views)
 
 
 def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),

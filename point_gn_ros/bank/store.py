@@ -15,13 +15,21 @@ Format version 2 (one `.npz`, read with allow_pickle=False, never unpickled):
                                            names, gamma, head (fusion weight, temperature,
                                            shrinkage, CV figures), calibration, provenance
 
+Format version 3 adds, optionally (written as version 2 when it has neither):
+  features      may be int8: each row scaled so its largest coordinate is +-127 (rows are
+                L2-normalised at load, so no scale is stored)
+  views_*       a second section, the single-view scans (`views_features`, `views_labels`,
+                `views_tf_*`, `views_head_*`, `views_meta`: the same arrays as above, with
+                the same class names and encoder), and
+  gate_*        the gate that mixes the two sections (bank/gate.py)
+
 Version-1 banks (kernel vote only, no head) still load, as the plain vote, with a
 log line saying so; `point_gn bank build` rebuilds them with the head.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import io
 import json
 import logging
@@ -35,11 +43,16 @@ import torch
 
 from point_gn_ros.core.config import ENCODER_VERSION, EncoderConfig
 from point_gn_ros.errors import BankError
+from point_gn_ros.bank.gate import GATE_ARRAYS, Gate
 from point_gn_ros.bank.head import Head
 from point_gn_ros.bank.transform import FeatureTransform
 from point_gn_ros.bank.validate import check_bank_arrays
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+# Written as version 2 when a bank has no views section and no int8 features (older readers).
+PLAIN_VERSION = 2
+STORED_DTYPES = ('float16', 'float32', 'int8')
+VIEWS_PREFIX = 'views_'
 # Older formats that still load (as the plain kernel vote).
 VOTE_ONLY_VERSIONS = (1,)
 REBUILD_HINT = 'point_gn bank build DATASET -o BANK (make default-bank for the shipped one)'
@@ -81,6 +94,8 @@ class FeatureBank:
     meta: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
     head: Head | None = None          # None: the plain kernel vote with `gamma`
+    views: 'FeatureBank | None' = None  # the single-view scan section (same classes)
+    gate: Gate | None = None          # with views: p(query is a scan), mixes the sections
 
     @property
     def classifier_head(self) -> Head:
@@ -106,7 +121,10 @@ class FeatureBank:
                 f'({self.meta.get("stored_dtype", "float32")}), {kind}, gamma {self.gamma:g}, '
                 f'T {head.temperature:.3g}, '
                 f'encoder v{self.meta.get("encoder_version")} {self.config.to_dict()}, '
-                f'from {src} [{split}]')
+                f'from {src} [{split}]'
+                + ('' if self.views is None else
+                   f'; + single-view section: {self.views.summary().split(", encoder")[0]}, '
+                   f'mixed by a gate'))
 
     def check_config(self, cfg: EncoderConfig) -> None:
         """Raise BankError unless the bank was built by an encoder configured as cfg."""
@@ -117,30 +135,18 @@ class FeatureBank:
                             f'encoder (bank, running): {diff}')
 
     def save(self, path: str | os.PathLike[str], dtype: str = 'float16') -> Path:
-        """Write the bank atomically; dtype of stored features: float16 or float32."""
-        if dtype not in ('float16', 'float32'):
-            raise ValueError(f'dtype must be float16 or float32, got {dtype}')
+        """Write the bank atomically; dtype of stored features: float16, float32 or int8."""
         path = Path(path)
-        meta = dict(self.meta)
-        meta.update(format_version=FORMAT_VERSION, encoder_version=ENCODER_VERSION,
-                    encoder_config=self.config.to_dict(), class_names=list(self.class_names),
-                    gamma=float(self.gamma), stored_dtype=dtype)
-        head = self.classifier_head
-        meta['head'] = {**meta.get('head', {}), 'fusion_weight': float(head.fusion_weight),
-                        'temperature': float(head.temperature)}
-        arrays = {
-            'features': self.features.cpu().numpy().astype(dtype),
-            'labels': self.labels.cpu().numpy().astype(np.int32),
-            'tf_mean': self.transform.mean.cpu().numpy().astype(np.float32),
-            'tf_scale': self.transform.scale.cpu().numpy().astype(np.float32),
-        }
-        if self.transform.projection is not None:
-            arrays['tf_projection'] = self.transform.projection.cpu().numpy().astype(np.float32)
-        arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
-        for name, t in zip(_HEAD_ARRAYS, (head.whiten, head.lda_coef, head.lda_bias),
-                           strict=True):
-            if t is not None:
-                arrays[name] = t.cpu().numpy().astype(np.float32)
+        arrays = self._arrays(dtype)
+        if self.views is not None:
+            if self.gate is None:
+                raise ValueError('a bank with a views section needs its gate')
+            arrays.update({VIEWS_PREFIX + k: v for k, v in self.views._arrays(dtype).items()})
+            arrays.update(self.gate.arrays())
+        if self.views is not None:
+            meta = json.loads(arrays['meta'].tobytes().decode())
+            meta['format_version'] = FORMAT_VERSION
+            arrays['meta'] = _meta_bytes(meta)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + '.tmp')
         with open(tmp, 'wb') as f:
@@ -149,6 +155,31 @@ class FeatureBank:
             os.fsync(f.fileno())
         os.replace(tmp, path)
         return path
+
+    def _arrays(self, dtype: str) -> dict[str, np.ndarray]:
+        """The file arrays of this section alone (no views section, no gate)."""
+        meta = dict(self.meta)
+        meta.update(format_version=FORMAT_VERSION if dtype == 'int8' else PLAIN_VERSION,
+                    encoder_version=ENCODER_VERSION,
+                    encoder_config=self.config.to_dict(), class_names=list(self.class_names),
+                    gamma=float(self.gamma), stored_dtype=dtype)
+        head = self.classifier_head
+        meta['head'] = {**meta.get('head', {}), 'fusion_weight': float(head.fusion_weight),
+                        'temperature': float(head.temperature)}
+        arrays = {
+            'features': to_stored(self.features, dtype),
+            'labels': self.labels.cpu().numpy().astype(np.int32),
+            'tf_mean': self.transform.mean.cpu().numpy().astype(np.float32),
+            'tf_scale': self.transform.scale.cpu().numpy().astype(np.float32),
+        }
+        if self.transform.projection is not None:
+            arrays['tf_projection'] = self.transform.projection.cpu().numpy().astype(np.float32)
+        arrays['meta'] = _meta_bytes(meta)
+        for name, t in zip(_HEAD_ARRAYS, (head.whiten, head.lda_coef, head.lda_bias),
+                           strict=True):
+            if t is not None:
+                arrays[name] = t.cpu().numpy().astype(np.float32)
+        return arrays
 
     @classmethod
     def load(cls, path: str | os.PathLike[str] | None = None,
@@ -169,17 +200,43 @@ class FeatureBank:
             raise
         except (zipfile.BadZipFile, OSError, ValueError, EOFError, io.UnsupportedOperation) as exc:
             raise BankError(f'{path}: unreadable or corrupt bank file ({exc})') from None
-        bank = cls._from_arrays(path, arrays)
+        bank = cls._from_sections(path, arrays)
         if expected_config is not None:
             bank.check_config(expected_config)
         return bank
 
     @classmethod
-    def _from_arrays(cls, path: Path, a: dict[str, np.ndarray]) -> 'FeatureBank':
-        def bad(problem: str) -> BankError:
-            return BankError(f'{path}: {problem}')
+    def _from_sections(cls, path: Path, a: dict[str, np.ndarray]) -> 'FeatureBank':
+        """The main section, plus the views section and gate when the file has them."""
+        main = {k: v for k, v in a.items()
+                if not k.startswith(VIEWS_PREFIX) and k not in GATE_ARRAYS}
+        sub = {k[len(VIEWS_PREFIX):]: v for k, v in a.items() if k.startswith(VIEWS_PREFIX)}
+        bank = cls._from_arrays(path, main)
+        has_gate = any(k in a for k in GATE_ARRAYS)
+        if not sub and not has_gate:
+            return bank
+        if bank.meta.get('format_version') != FORMAT_VERSION:
+            raise BankError(f'{path}: views section or gate in a format '
+                            f'{bank.meta.get("format_version")} bank')
+        if not sub or not has_gate:
+            raise BankError(f'{path}: a views section and a gate come together')
+        views = cls._from_arrays(path, sub, section='views section: ')
+        if views.class_names != bank.class_names or views.config != bank.config:
+            raise BankError(f'{path}: views section: class names or encoder configuration '
+                            'differ from the main section')
+        try:
+            gate = Gate.from_arrays(a, bank.config.feature_dim)
+        except ValueError as exc:
+            raise BankError(f'{path}: {exc}') from None
+        return replace(bank, views=views, gate=gate)
 
-        check_bank_arrays(path, a)   # limits and ranges first (bank/validate.py)
+    @classmethod
+    def _from_arrays(cls, path: Path, a: dict[str, np.ndarray],
+                     section: str = '') -> 'FeatureBank':
+        def bad(problem: str) -> BankError:
+            return BankError(f'{path}: {section}{problem}')
+
+        check_bank_arrays(path, a, section)   # limits and ranges first (bank/validate.py)
         try:
             meta = json.loads(a['meta'].tobytes().decode())
             if not isinstance(meta, dict):
@@ -192,7 +249,7 @@ class FeatureBank:
                         'plain kernel vote (scores are vote shares, no novelty calibration); '
                         'rebuild it for calibrated probabilities: %s', path, version,
                         REBUILD_HINT)
-        elif version != FORMAT_VERSION:
+        elif version not in (PLAIN_VERSION, FORMAT_VERSION):
             raise bad(f'format version {version!r} is not supported (expected {FORMAT_VERSION}; '
                       f'rebuild: {REBUILD_HINT})')
         if meta.get('encoder_version') != ENCODER_VERSION:
@@ -207,8 +264,9 @@ class FeatureBank:
         feats, labels = a['features'], a['labels']
         mean, scale = a['tf_mean'], a['tf_scale']
         proj = a.get('tf_projection')
-        if feats.dtype not in (np.float16, np.float32) or feats.ndim != 2 or len(feats) == 0:
-            raise bad(f'features must be a non-empty 2-D float16/float32 array, got '
+        if (feats.dtype not in (np.float16, np.float32, np.int8) or feats.ndim != 2
+                or len(feats) == 0):
+            raise bad(f'features must be a non-empty 2-D float16/float32/int8 array, got '
                       f'{feats.dtype} {feats.shape}')
         if labels.ndim != 1 or labels.shape[0] != feats.shape[0] or labels.dtype.kind not in 'iu':
             raise bad(f'labels must be (N,) integers matching {feats.shape[0]} features, got '
@@ -271,3 +329,24 @@ class FeatureBank:
             raise bad('head fusion weight > 0 but no LDA arrays')
         return Head(gamma, got.get('head_whiten'), got.get('head_lda_coef'),
                     got.get('head_lda_bias'), weight, temp)
+
+
+def to_stored(features: torch.Tensor, dtype: str) -> np.ndarray:
+    """Unit rows (N, d) -> the values a file stores (N, d) in `dtype`.
+
+    float16/float32: cast. int8: every row scaled so its largest coordinate is +-127 (load
+    re-normalises rows, so no scale is kept); stored int8 values cast to float32 and stored
+    again are unchanged.
+    """
+    if dtype not in STORED_DTYPES:
+        raise ValueError(f'dtype must be one of {", ".join(STORED_DTYPES)}, got {dtype}')
+    x = features.detach().cpu().float().numpy()
+    if dtype != 'int8':
+        return x.astype(dtype)
+    peak = np.abs(x).max(axis=1, keepdims=True)
+    scale = np.divide(np.float32(127.0), peak, out=np.zeros_like(peak), where=peak > 0)
+    return np.clip(np.rint(x * scale), -127, 127).astype(np.int8)
+
+
+def _meta_bytes(meta: dict[str, Any]) -> np.ndarray:
+    return np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)

@@ -135,10 +135,13 @@ def check_class_names(names: Any) -> str | None:
     return None
 
 
-def check_bank_arrays(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    """Raise BankError('<path>: <reason>') for the first problem found (module docstring)."""
+def check_bank_arrays(path: Path, arrays: Mapping[str, np.ndarray], section: str = '') -> None:
+    """Raise BankError('<path>: <section><reason>') for the first problem found.
+
+    See the module docstring; section names a bank's second section ('views section: ').
+    """
     def fail(problem: str) -> BankError:
-        return BankError(f'{path}: {problem}')
+        return BankError(f'{path}: {section}{problem}')
 
     raw = arrays.get('meta')
     if raw is None:
@@ -175,7 +178,7 @@ def check_bank_arrays(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
         if empty:
             raise fail(f'{len(empty)} class(es) have no entries: {", ".join(empty[:5])}'
                        + (' ...' if len(empty) > 5 else ''))
-    if (feats is not None and feats.ndim == 2 and feats.dtype in (np.float16, np.float32)
+    if (feats is not None and feats.ndim == 2 and feats.dtype in (np.float16, np.float32, np.int8)
             and np.isfinite(feats).all()):
         norms = np.linalg.norm(feats.astype(np.float32), axis=1)
         zero = np.flatnonzero(~(norms > 0))
