@@ -18,7 +18,7 @@ Protocol (issue 12 goal):
 Nothing here is tuned on the test split: the bank's knobs were chosen by CV on train.
 
 Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR]
-     [--augment none|mirror|rot4|d4] [--view-protocol hpr|zbuffer]
+     [--augment none|mirror|rot4|d4] [--view-protocol hpr|zbuffer] [--lda-prior balanced]
 """
 
 from __future__ import annotations
@@ -57,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--augment', choices=tuple(AUGMENTS), default='none',
                    help='frames each enrolled scan is stored in (core/augment.py)')
+    p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries',
+                   help="LDA class priors after each enrollment's refit (RefitPolicy)")
     p.add_argument('--view-protocol', choices=('hpr', 'zbuffer'), default='hpr',
                    help='view simulator setting for every scan (default hpr)')
     p.add_argument('--json', default=None, help='write the figures here')
@@ -113,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
           file=sys.stderr)
 
     live = LiveBank(bf, lambda active: Recognizer(active, encoder=encoder),
-                    RefitPolicy(gamma='auto'))
+                    RefitPolicy(gamma='auto', lda_prior=args.lda_prior))
 
     def accuracy(feats, labels) -> float:
         pred = live.current().model.classifier.classify(feats).labels
@@ -144,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {
         'bank': str(bf.bank.path), 'bank_version': snap.version, 'gamma': snap.bank.gamma,
         'augment': args.augment, 'view_protocol': args.view_protocol,
+        'lda_prior': args.lda_prior,
         'refit': snap.bank.meta['refit'], 'objects': chosen,
         'new_objects_accuracy': float((q_pred == q_true).mean()),
         'new_objects_misses_to_another_new_class': float(

@@ -33,6 +33,7 @@ AUTO_CV_MAX_ENTRIES = 2000
 _ABSENT_BIAS = -1e4
 
 GammaPolicy = Literal['keep', 'cv', 'auto']
+LdaPrior = Literal['entries', 'balanced']
 CalibrationPolicy = Literal['keep', 'recalibrate', 'auto']
 
 
@@ -118,8 +119,12 @@ class RefitPolicy:
     bank has <= cv_max_entries entries, else 'keep'.
     calibration (open-set threshold): 'recalibrate' from held-out CV scores, 'keep' the stored
     one, 'auto' = recalibrate exactly when gamma was re-chosen by CV (the scores come free).
-    min_examples: classes with fewer entries are kept in the bank but not predicted (see
+    min_examples: classes with fewer examples are kept in the bank but not predicted (see
     `active_view`) and do not take part in the fit.
+    lda_prior: the LDA class priors of the refitted head: 'entries' (each class's share of
+    the bank's entries, as built) or 'balanced' (equal priors: a 5-example class is not
+    penalised against 250-example ones; class sizes reflect how many examples were
+    collected, not how often a class is seen).
     """
 
     gamma: GammaPolicy = 'auto'
@@ -128,8 +133,11 @@ class RefitPolicy:
     folds: int = 5
     cv_max_entries: int = AUTO_CV_MAX_ENTRIES
     duplicate_cosine: float = DUPLICATE_COSINE
+    lda_prior: LdaPrior = 'entries'
 
     def __post_init__(self) -> None:
+        if self.lda_prior not in ('entries', 'balanced'):
+            raise ValueError(f'lda_prior must be entries or balanced, got {self.lda_prior!r}')
         if self.gamma not in ('keep', 'cv', 'auto'):
             raise ValueError(f'gamma policy must be keep, cv or auto, got {self.gamma!r}')
         if self.calibration not in ('keep', 'recalibrate', 'auto'):
@@ -258,6 +266,11 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                 lda = CovarianceFit.fit(z_view, compact, len(present)).lda(lda_alpha)
             coef, bias = lda
             new_head = replace(head, lda_coef=coef, lda_bias=bias)
+    if new_head is not None and new_head.lda_bias is not None and policy.lda_prior == 'balanced':
+        # Both fits above use entry-share priors: swap them for equal ones.
+        n = torch.from_numpy(np.bincount(labels_all)[present]).double()
+        shift = (n.sum() / n).log() - np.log(len(present))
+        new_head = replace(new_head, lda_bias=new_head.lda_bias + shift.float())
     if new_head is not None:
         new_head = _expand_lda(replace(new_head, gamma=gamma), present, bank.num_classes)
         if new_head.is_plain_vote and new_head.temperature == 1.0:
@@ -277,6 +290,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                               'refitted in closed form' + (', knobs by CV' if sel else
                                                            ', knobs kept')),
                      'calibration_reason': cal_reason, 'min_examples': policy.min_examples,
+                     'lda_prior': policy.lda_prior,
                      'predicted_classes': int(len(present))}
     return replace(bank, features=features, gamma=gamma, meta=meta, head=new_head), rewhiten
 

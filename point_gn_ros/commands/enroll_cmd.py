@@ -64,13 +64,18 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument('--min-examples', type=int, default=1,
                    help='classes with fewer examples take no part in the refit (default 1)')
     p.add_argument('--folds', type=int, default=5, help='CV folds for the refit (default 5)')
+    p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries',
+                   help="LDA class priors of the refitted head: each class's share of the "
+                        "entries (default) or 'balanced' (equal: few-example classes are not "
+                        'penalised)')
     add_encoder_args(p)
 
 
 def _policy(args: argparse.Namespace):
     from point_gn_ros.bank.enroll import RefitPolicy
     return RefitPolicy(gamma=args.gamma, calibration=args.calibration,
-                       min_examples=args.min_examples, folds=args.folds)
+                       min_examples=args.min_examples, folds=args.folds,
+                       lda_prior=args.lda_prior)
 
 
 def _read_inputs(args: argparse.Namespace) -> tuple[list, str]:

@@ -74,6 +74,9 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     'enroll_refit_gamma': ('auto', "After a change: 'keep' gamma, re-choose it by 'cv', or "
                                    "'auto' (CV on banks of <= 2,000 entries).",
                            {'additional_constraints': "one of 'auto', 'keep', 'cv'"}),
+    'enroll_lda_prior': ('entries', "LDA class priors after a change: 'entries' (class shares "
+                                    "of the bank) or 'balanced' (equal priors).",
+                         {'additional_constraints': "one of 'entries', 'balanced'"}),
     'enroll_augment': ('none', "Frames each example is stored in (core/augment.py): 'none', "
                                "'mirror', 'rot4' or 'd4' (8 entries per example: the frames "
                                'the yaw alignment confuses on partial scans).',
@@ -123,7 +126,12 @@ class Enrollment(ManagedEntity):
             log.error(f'parameter enroll_augment={augment!r} must be one of '
                       f'{", ".join(AUGMENTS)}')
             return TransitionCallbackReturn.FAILURE
-        policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'])
+        prior = self.values['enroll_lda_prior']
+        if prior not in ('entries', 'balanced'):
+            log.error(f'parameter enroll_lda_prior={prior!r} must be entries or balanced')
+            return TransitionCallbackReturn.FAILURE
+        policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'],
+                             lda_prior=prior)
         try:
             self.live = LiveBank(_bank_file(node.recognizer.bank), self._make_model, policy)
             node.replace_recognizer(self.live.current().model)
