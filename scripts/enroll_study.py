@@ -19,6 +19,7 @@ Nothing here is tuned on the test split: the bank's knobs were chosen by CV on t
 
 Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR]
      [--augment none|mirror|rot4|d4] [--view-protocol hpr|zbuffer] [--lda-prior balanced]
+     [--cv-augment]
 """
 
 from __future__ import annotations
@@ -59,6 +60,9 @@ def main(argv: list[str] | None = None) -> int:
                    help='frames each enrolled scan is stored in (core/augment.py)')
     p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries',
                    help="LDA class priors after each enrollment's refit (RefitPolicy)")
+    p.add_argument('--cv-augment', action='store_true',
+                   help='also choose --augment by leave-one-scan-out CV on the enrolled scans '
+                        'alone (no query scan read): accuracy per option')
     p.add_argument('--view-protocol', choices=('hpr', 'zbuffer'), default='hpr',
                    help='view simulator setting for every scan (default hpr)')
     p.add_argument('--json', default=None, help='write the figures here')
@@ -113,9 +117,15 @@ def main(argv: list[str] | None = None) -> int:
             arrays[f'enroll_{c}'] = encode(enrollment_scans(i), args.augment)
     print(f'encoded {len(rest)} test objects twice in {time.perf_counter() - t0:.0f} s',
           file=sys.stderr)
+    policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior)
+    cv = None
+    if args.cv_augment:
+        scans = {f'{c}_object_{i}': enrollment_scans(i) for c, i in chosen.items()}
+        cv = {a: augment_cv(bf, encoder, scans, a, policy) for a in AUGMENTS}
+        print(f'leave-one-scan-out CV on the enrolled scans: {cv}', file=sys.stderr)
 
     live = LiveBank(bf, lambda active: Recognizer(active, encoder=encoder),
-                    RefitPolicy(gamma='auto', lda_prior=args.lda_prior))
+                    policy)
 
     def accuracy(feats, labels) -> float:
         pred = live.current().model.classifier.classify(feats).labels
@@ -159,10 +169,37 @@ def main(argv: list[str] | None = None) -> int:
         'enroll_seconds_per_object_max': max(enroll_s),
         'near_duplicates': dups,
     }
+    if cv is not None:
+        out['augment_cv_on_enrolled_scans'] = cv
     print(json.dumps(out, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2) + '\n')
     return 0
+
+
+def augment_cv(bf: BankFile, encoder, scans: dict[str, list[np.ndarray]], augment: str,
+               policy: RefitPolicy) -> float:
+    """Leave-one-scan-out accuracy of an augmentation, on the enrolled scans only.
+
+    scans: class name -> its M enrollment scans. Fold j enrolls every class's scans but the
+    j-th (augmented) and classifies the j-th scans (one canonical encoding each, as queries).
+    """
+    k = len(AUGMENTS[augment])
+    feats = {n: encode_clouds(s, encoder, augment=augment) for n, s in scans.items()}  # type: ignore
+    m = min(len(s) for s in scans.values())
+    right = 0
+    for j in range(m):
+        live = LiveBank(bf, lambda active: Recognizer(active, encoder=encoder), policy)
+        held, ids = [], []
+        for name, f in feats.items():
+            keep = torch.ones(len(f), dtype=torch.bool)
+            keep[j * k:(j + 1) * k] = False
+            live.add(f[keep], name, source='cv', augment=augment)
+            held.append(f[j * k:j * k + 1])
+            ids.append(live.current().class_names.index(name))
+        pred = live.current().model.classifier.classify(torch.cat(held)).labels
+        right += int((pred == np.asarray(ids)).sum())
+    return right / (m * len(feats))
 
 
 if __name__ == '__main__':
