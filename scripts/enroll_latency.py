@@ -11,6 +11,7 @@ answered / answered twice = stream messages answered (each must be exactly once)
 errors from the node's diagnostics.
 
 Run: python scripts/enroll_latency.py [--bank PATH] [--rate 30] [--examples 20] [--seconds 6]
+     [--augment d4]
 (needs the shared ModelNet40 data; ROS_DOMAIN_ID honoured via test/node_testing.py).
 """
 
@@ -38,6 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--rate', type=float, default=30.0, help='stream objects per second')
     p.add_argument('--examples', type=int, default=20, help='enrollment examples')
     p.add_argument('--seconds', type=float, default=6.0, help='stream duration')
+    p.add_argument('--augment', default='none', choices=('none', 'mirror', 'rot4', 'd4'),
+                   help='node parameter enroll_augment (frames stored per example)')
     p.add_argument('--json', default=None)
     args = p.parse_args(argv)
 
@@ -54,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     log = Path(tempfile.mkdtemp(prefix='enroll_latency_')) / 'node.log'
     node = NodeProcess({'bank_path': args.bank, 'input_topics': ['objects'],
                         'qos_reliability': 'reliable', 'qos_depth': 200, 'queue_size': 400,
-                        'enroll_class': 'my_sofa'}, log)
+                        'enroll_class': 'my_sofa', 'enroll_augment': args.augment}, log)
     h = Harness('enroll_latency')
     try:
         pub = h.node.create_publisher(PointCloud2, 'objects', reliable_qos(400))
