@@ -15,6 +15,7 @@ import torch
 
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.bank.classifier import Classification, Classifier
+from point_gn_ros.core.augment import Augment, yaw_variants
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.sampling import ResampleMethod, prepare
 
@@ -51,10 +52,13 @@ def make_encoder(cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu',
 
 def encode_clouds(clouds: Iterable[np.ndarray] | np.ndarray, encoder: Encoder,
                   resample: ResampleMethod = 'fps', seed: int = 0, batch_size: int = 64,
-                  progress: str | None = None, total: int | None = None) -> torch.Tensor:
-    """Prepare and encode clouds: each (N_i, 3) float32 finite -> (M, feature_dim) float32.
+                  progress: str | None = None, total: int | None = None,
+                  augment: Augment = 'none') -> torch.Tensor:
+    """Prepare and encode clouds: each (N_i, 3) float32 finite -> (M * k, feature_dim) float32.
 
-    progress: a tqdm description, or None for no progress bar.
+    progress: a tqdm description, or None for no progress bar. augment: encode each prepared
+    cloud in the k frames of core/augment.py's group (enrollment examples; k = 1 for 'none'),
+    example-major: rows i * k ... i * k + k - 1 are cloud i.
     """
     n, yaw_align = encoder.cfg.num_points, encoder.cfg.yaw_align
     if total is None and hasattr(clouds, '__len__'):
@@ -66,7 +70,7 @@ def encode_clouds(clouds: Iterable[np.ndarray] | np.ndarray, encoder: Encoder,
     out, batch = [], []
 
     def flush() -> None:
-        out.append(encoder.encode(torch.from_numpy(np.stack(batch))))
+        out.append(encoder.encode(torch.from_numpy(yaw_variants(np.stack(batch), augment))))
         if bar is not None:
             bar.update(len(batch))
         batch.clear()
@@ -122,9 +126,13 @@ class Recognizer:
         self.classify_clouds([cloud])
         return time.perf_counter() - t0
 
-    def encode(self, clouds: Sequence[np.ndarray]) -> torch.Tensor:
-        """clouds: list of (N_i, 3) float32 finite, N_i >= 1 -> (B, feature_dim) float32."""
-        return encode_clouds(clouds, self.encoder, self.resample, batch_size=max(1, len(clouds)))
+    def encode(self, clouds: Sequence[np.ndarray], augment: Augment = 'none') -> torch.Tensor:
+        """clouds: list of (N_i, 3) float32 finite, N_i >= 1 -> (B * k, feature_dim) float32.
+
+        augment: see `encode_clouds` (k variants per cloud; 'none' for queries).
+        """
+        return encode_clouds(clouds, self.encoder, self.resample, batch_size=max(1, len(clouds)),
+                             augment=augment)
 
     def classify_clouds(self, clouds: Sequence[np.ndarray]) -> Classification:
         """clouds: list of (N_i, 3) float32 finite, N_i >= 1 -> Classification of B rows."""

@@ -11,7 +11,7 @@ answered / answered twice = stream messages answered (each must be exactly once)
 errors from the node's diagnostics.
 
 Run: python scripts/enroll_latency.py [--bank PATH] [--rate 30] [--examples 20] [--seconds 6]
-[--search auto|exact|indexed]
+     [--search auto|exact|indexed] [--augment d4]
 (needs the shared ModelNet40 data; ROS_DOMAIN_ID honoured via test/node_testing.py).
 """
 
@@ -41,6 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--seconds', type=float, default=6.0, help='stream duration')
     p.add_argument('--search', default='auto', choices=('auto', 'exact', 'indexed'),
                    help="the node's bank search parameter")
+    p.add_argument('--augment', default='none', choices=('none', 'mirror', 'rot4', 'd4'),
+                   help='node parameter enroll_augment (frames stored per example)')
     p.add_argument('--json', default=None)
     args = p.parse_args(argv)
 
@@ -57,7 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     log = Path(tempfile.mkdtemp(prefix='enroll_latency_')) / 'node.log'
     node = NodeProcess({'bank_path': args.bank, 'input_topics': ['objects'],
                         'qos_reliability': 'reliable', 'qos_depth': 200, 'queue_size': 400,
-                        'enroll_class': 'my_sofa', 'search': args.search}, log)
+                        'enroll_class': 'my_sofa', 'search': args.search,
+                        'enroll_augment': args.augment}, log)
     h = Harness('enroll_latency')
     try:
         pub = h.node.create_publisher(PointCloud2, 'objects', reliable_qos(400))

@@ -6,7 +6,9 @@ Protocol (issue 12 goal):
 - New objects: for each ModelNet10 category one test-split object (seeded choice); each becomes a
   NEW class '<category>_object_<index>' (instance-level: "my chair", not "a chair").
 - Enrollment: 5 single-view scans per object (core/views.py simulator, evenly spread azimuths,
-  seed s), encoded and added through `LiveBank.add` exactly as the node does, one call per object.
+  seed s; `--view-protocol`: 'hpr', the simulator's default, or round 1's harsher 'zbuffer'),
+  encoded (`--augment`: each scan stored in the k frames of core/augment.py, as the node's
+  `enroll_augment` does) and added through `LiveBank.add` as the node does, one call per object.
   The refit policy is the node's default ('auto': the 9,843-entry bank keeps its CV-chosen gamma
   and its calibrated threshold, recorded in the bank).
 - New-object accuracy: 20 OTHER single-view scans of each enrolled object (seed s + 1000, other
@@ -16,6 +18,8 @@ Protocol (issue 12 goal):
 Nothing here is tuned on the test split: the bank's knobs were chosen by CV on train.
 
 Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR]
+     [--augment none|mirror|rot4|d4] [--view-protocol hpr|zbuffer] [--lda-prior balanced]
+     [--cv-augment]
 """
 
 from __future__ import annotations
@@ -32,9 +36,11 @@ import torch
 
 from point_gn_ros.bank.enroll import BankFile, RefitPolicy
 from point_gn_ros.bank.live import LiveBank
+from point_gn_ros.core.augment import AUGMENTS
 from point_gn_ros.core.config import ENCODER_VERSION
 from point_gn_ros.core.sampling import rotate_z
-from point_gn_ros.core.views import SIMULATOR_VERSION, simulate_view, simulate_views
+from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
+                                     simulate_views)
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.recognizer import Recognizer, encode_clouds, make_encoder
 
@@ -50,6 +56,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--enroll-views', type=int, default=5)
     p.add_argument('--query-views', type=int, default=20)
     p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--augment', choices=tuple(AUGMENTS), default='none',
+                   help='frames each enrolled scan is stored in (core/augment.py)')
+    p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries',
+                   help="LDA class priors after each enrollment's refit (RefitPolicy)")
+    p.add_argument('--cv-augment', action='store_true',
+                   help='also choose --augment by leave-one-scan-out CV on the enrolled scans '
+                        'alone (no query scan read): accuracy per option')
+    p.add_argument('--view-protocol', choices=('hpr', 'zbuffer'), default='hpr',
+                   help='view simulator setting for every scan (default hpr)')
     p.add_argument('--json', default=None, help='write the figures here')
     p.add_argument('--cache', default=None, metavar='DIR',
                    help='reuse the encoded clouds (keyed by encoder configuration and seeds)')
@@ -63,12 +78,20 @@ def main(argv: list[str] | None = None) -> int:
               for c in MODELNET10}
     rest = np.setdiff1d(np.arange(len(test)), list(chosen.values()))
 
-    def encode(clouds: list[np.ndarray]):
-        return encode_clouds(clouds, encoder, batch_size=64)
+    view_cfg = VIEW_PROTOCOLS[args.view_protocol][0]
+
+    def encode(clouds: list[np.ndarray], augment: str = 'none'):
+        return encode_clouds(clouds, encoder, batch_size=64, augment=augment)  # type: ignore
+
+    def enrollment_scans(i: int) -> list[np.ndarray]:
+        return [v.points for v in simulate_views(test[i][0], args.enroll_views,
+                                                 seed=args.seed + i, cfg=view_cfg)]
 
     t0 = time.perf_counter()
+    # The hpr key is the one used before --view-protocol existed (same cached features).
+    protocol_key = () if args.view_protocol == 'hpr' else (args.view_protocol,)
     key = hashlib.sha1(repr((bf.bank.config.to_dict(), ENCODER_VERSION, SIMULATOR_VERSION,
-                             args.seed, args.enroll_views, args.query_views)
+                             args.seed, args.enroll_views, args.query_views, *protocol_key)
                             ).encode()).hexdigest()[:16]
     cache = Path(args.cache) / f'enroll_study_{key}.npz' if args.cache else None
     if cache is not None and cache.is_file():
@@ -76,25 +99,33 @@ def main(argv: list[str] | None = None) -> int:
             arrays = {k: torch.from_numpy(z[k]) for k in z.files}
     else:
         full = [rotate_z(test[i][0], float(rng.uniform(0, 2 * np.pi))) for i in rest]
-        one_view = [simulate_view(test[i][0], np.random.default_rng([7, int(i)])).points
-                    for i in rest]
+        one_view = [simulate_view(test[i][0], np.random.default_rng([7, int(i)]),
+                                  view_cfg).points for i in rest]
         arrays = {'full': encode(full), 'view': encode(one_view)}
         for c, i in chosen.items():
             obj = test[i][0]
-            arrays[f'enroll_{c}'] = encode([v.points for v in simulate_views(
-                obj, args.enroll_views, seed=args.seed + i)])
+            arrays[f'enroll_{c}'] = encode(enrollment_scans(i))
             arrays[f'query_{c}'] = encode([v.points for v in simulate_views(
-                obj, args.query_views, seed=args.seed + 1000 + i)])
+                obj, args.query_views, seed=args.seed + 1000 + i, cfg=view_cfg)])
         if cache is not None:
             cache.parent.mkdir(parents=True, exist_ok=True)
             np.savez(cache, **{k: v.numpy() for k, v in arrays.items()})
     f_full, f_view = arrays['full'], arrays['view']
     truth = test.labels[rest]
+    if args.augment != 'none':   # the cache holds the canonical frame only
+        for c, i in chosen.items():
+            arrays[f'enroll_{c}'] = encode(enrollment_scans(i), args.augment)
     print(f'encoded {len(rest)} test objects twice in {time.perf_counter() - t0:.0f} s',
           file=sys.stderr)
+    policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior)
+    cv = None
+    if args.cv_augment:
+        scans = {f'{c}_object_{i}': enrollment_scans(i) for c, i in chosen.items()}
+        cv = {a: augment_cv(bf, encoder, scans, a, policy) for a in AUGMENTS}
+        print(f'leave-one-scan-out CV on the enrolled scans: {cv}', file=sys.stderr)
 
     live = LiveBank(bf, lambda active: Recognizer(active, encoder=encoder),
-                    RefitPolicy(gamma='auto'))
+                    policy)
 
     def accuracy(feats, labels) -> float:
         pred = live.current().model.classifier.classify(feats).labels
@@ -106,7 +137,8 @@ def main(argv: list[str] | None = None) -> int:
         name = f'{c}_object_{i}'
         t = time.perf_counter()
         res = live.add(arrays[f'enroll_{c}'], name, source=f'enroll_study: '
-                       f'{args.enroll_views} views of test object {i}')
+                       f'{args.enroll_views} views of test object {i}',
+                       augment=args.augment)
         enroll_s.append(time.perf_counter() - t)
         dups += res.duplicate_count
         cid = live.current().class_names.index(name)
@@ -123,8 +155,13 @@ def main(argv: list[str] | None = None) -> int:
     after = {'complete': accuracy(f_full, truth), 'single_view': accuracy(f_view, truth)}
     out = {
         'bank': str(bf.bank.path), 'bank_version': snap.version, 'gamma': snap.bank.gamma,
+        'augment': args.augment, 'view_protocol': args.view_protocol,
+        'lda_prior': args.lda_prior,
         'refit': snap.bank.meta['refit'], 'objects': chosen,
         'new_objects_accuracy': float((q_pred == q_true).mean()),
+        'new_objects_misses_to_another_new_class': float(
+            np.isin(q_pred[q_pred != q_true], np.unique(q_true)).mean())
+        if (q_pred != q_true).any() else 0.0,
         'new_objects_per_object': per_object,
         'new_objects_right_category_or_instance': as_category,
         'existing_before': before, 'existing_after': after,
@@ -132,10 +169,37 @@ def main(argv: list[str] | None = None) -> int:
         'enroll_seconds_per_object_max': max(enroll_s),
         'near_duplicates': dups,
     }
+    if cv is not None:
+        out['augment_cv_on_enrolled_scans'] = cv
     print(json.dumps(out, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2) + '\n')
     return 0
+
+
+def augment_cv(bf: BankFile, encoder, scans: dict[str, list[np.ndarray]], augment: str,
+               policy: RefitPolicy) -> float:
+    """Leave-one-scan-out accuracy of an augmentation, on the enrolled scans only.
+
+    scans: class name -> its M enrollment scans. Fold j enrolls every class's scans but the
+    j-th (augmented) and classifies the j-th scans (one canonical encoding each, as queries).
+    """
+    k = len(AUGMENTS[augment])
+    feats = {n: encode_clouds(s, encoder, augment=augment) for n, s in scans.items()}  # type: ignore
+    m = min(len(s) for s in scans.values())
+    right = 0
+    for j in range(m):
+        live = LiveBank(bf, lambda active: Recognizer(active, encoder=encoder), policy)
+        held, ids = [], []
+        for name, f in feats.items():
+            keep = torch.ones(len(f), dtype=torch.bool)
+            keep[j * k:(j + 1) * k] = False
+            live.add(f[keep], name, source='cv', augment=augment)
+            held.append(f[j * k:j * k + 1])
+            ids.append(live.current().class_names.index(name))
+        pred = live.current().model.classifier.classify(torch.cat(held)).labels
+        right += int((pred == np.asarray(ids)).sum())
+    return right / (m * len(feats))
 
 
 if __name__ == '__main__':

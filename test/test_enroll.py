@@ -346,3 +346,21 @@ def test_incremental_lda_refit_matches_a_full_refit() -> None:
     q = torch.cat([_queries(new, 6, 3), _queries(centres[3], 6, 4)])
     assert np.array_equal(Classifier(plain.bank).classify(q).labels,
                           Classifier(fast.bank).classify(q).labels)
+
+
+def test_balanced_lda_prior(head_bank) -> None:  # noqa: ANN001
+    """'balanced' replaces the LDA's entry-share priors by equal ones, nothing else."""
+    bf, _ = head_bank
+    new_centre = torch.randn(D, generator=torch.Generator().manual_seed(80))
+    feats = _queries(new_centre, 3, 1)
+    res = {p: add_examples(bf, feats, 'new', policy=RefitPolicy(gamma='keep', lda_prior=p))
+           for p in ('entries', 'balanced')}
+    a, b = res['entries'].bank.head, res['balanced'].bank.head
+    assert torch.equal(a.lda_coef, b.lda_coef) and a.gamma == b.gamma
+    n = torch.bincount(res['entries'].bank.labels).double()          # 24 x 5, then 3
+    want = ((n.sum() / n).log() - np.log(6)).float()
+    assert torch.allclose(b.lda_bias - a.lda_bias, want, atol=1e-5)
+    assert float(want[-1] - want[0]) == pytest.approx(np.log(8), abs=1e-5)   # 24 / 3
+    assert res['balanced'].bank.meta['refit']['lda_prior'] == 'balanced'
+    with pytest.raises(ValueError, match='lda_prior'):
+        RefitPolicy(lda_prior='uniform')  # type: ignore[arg-type]

@@ -55,6 +55,24 @@ def test_add_files_then_remove(small_bank_path: Path, tmp_path: Path,
     assert "remove 'toolbox'" in text and 'last refit (v3)' in text
 
 
+def test_add_augmented_d4(small_bank_path: Path, tmp_path: Path,
+                          capsys: pytest.CaptureFixture) -> None:
+    xyz, labels, names = load_modelnet_split('test')
+    obj = xyz[np.flatnonzero(labels == names.index('cone'))[3]]
+    folder = tmp_path / 'scans'
+    folder.mkdir()
+    for i in range(2):
+        np.save(folder / f'scan_{i}.npy', obj[i::2])
+    out = tmp_path / 'aug.npz'
+    assert main(['bank', 'add', str(small_bank_path), str(folder), '--class', 'toolbox',
+                 '--augment', 'd4', '--lda-prior', 'balanced', '-o', str(out)]) == 0
+    assert "added 2 example(s) (16 entries, d4) to new class 'toolbox'" in capsys.readouterr().out
+    bank = BankFile.load(out).bank
+    assert class_counts(bank)['toolbox'] == 16 and bank.meta['refit']['lda_prior'] == 'balanced'
+    assert main(['bank', 'history', str(out)]) == 0
+    assert "add 'toolbox' x16 (2 examples, d4)" in capsys.readouterr().out
+
+
 def test_errors_are_one_line(small_bank_path: Path, tmp_path: Path,
                              capsys: pytest.CaptureFixture) -> None:
     assert main(['bank', 'remove', str(small_bank_path), 'no_such_class']) == 2

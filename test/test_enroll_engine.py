@@ -25,7 +25,8 @@ class _FakeRecognizer:
     def __init__(self) -> None:
         self.calls: list[int] = []
 
-    def encode(self, clouds: list[np.ndarray]) -> torch.Tensor:
+    def encode(self, clouds: list[np.ndarray], augment: str = 'none') -> torch.Tensor:
+        assert augment == 'none'
         self.calls.append(len(clouds))
         out = torch.zeros(len(clouds), D)
         for i, c in enumerate(clouds):

@@ -11,6 +11,9 @@ bank's own transform (and head whitening); what depends on the entries is refres
 Metadata added (JSON, in the bank file):
   bank_version   int, +1 per add/remove (0 = as built)
   enrollments    list of {version, action, class, count, time, source, near_duplicates}
+                 (+ examples, augment when an add stored each example in k frames)
+  augmented_entries  {class: entries beyond one per example} (augmented adds only; the
+                 examples of a class = its entries minus this, see `example_counts`)
   refit          how gamma / calibration were last decided {version, gamma, calibration, ...}
 """
 
@@ -28,8 +31,9 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, ScatterStats,
-                                     active_view, refit, vote_to_z)
+                                     active_view, example_counts, refit, vote_to_z)
 from point_gn_ros.bank.store import FeatureBank, to_stored
+from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.errors import PointGNError
 
 # At most this many near-duplicate pairs are listed (the count is always exact).
@@ -41,7 +45,8 @@ class EnrollError(PointGNError):
 
 __all__ = ['BankFile', 'EnrollError', 'EnrollResult', 'NearDuplicate', 'RefitError',
            'RefitPolicy', 'active_view', 'add_examples', 'bank_version', 'class_counts',
-           'near_duplicates', 'predictable', 'refit', 'remove_class', 'save_atomic']
+           'example_counts', 'near_duplicates', 'predictable', 'refit', 'remove_class',
+           'save_atomic']
 
 
 @dataclass(frozen=True)
@@ -61,11 +66,13 @@ class EnrollResult:
     file: BankFile
     action: Literal['add', 'remove']
     class_name: str
-    count: int                       # examples added / entries removed
+    count: int                       # entries added / removed
     new_class: bool = False
     duplicates: tuple[NearDuplicate, ...] = ()
     duplicate_count: int = 0
     refit: dict[str, Any] = field(default_factory=dict)
+    augment: str = 'none'            # add: the frames each example was stored in
+    examples: int = 0                # add: examples (count // variants); remove: 0
 
     @property
     def bank(self) -> FeatureBank:
@@ -77,9 +84,12 @@ class EnrollResult:
 
     def describe(self) -> str:
         verb = 'added' if self.action == 'add' else 'removed'
-        what = 'example(s) to new class' if self.new_class else (
-            'example(s) of' if self.action == 'add' else 'entries of class')
-        text = (f'bank v{self.version}: {verb} {self.count} {what} {self.class_name!r}; '
+        n, frames = self.count, ''
+        if self.action == 'add' and self.count != self.examples:
+            n, frames = self.examples, f' ({self.count} entries, {self.augment})'
+        what = f'example(s){frames} to new class' if self.new_class else (
+            f'example(s){frames} of' if self.action == 'add' else 'entries of class')
+        text = (f'bank v{self.version}: {verb} {n} {what} {self.class_name!r}; '
                 f'gamma {self.bank.gamma:g} ({self.refit.get("gamma_reason", "?")}), '
                 f'threshold {self.refit.get("calibration_reason", "?")}')
         if self.duplicate_count:
@@ -102,8 +112,9 @@ def class_counts(bank: FeatureBank) -> dict[str, int]:
 
 
 def predictable(bank: FeatureBank, min_examples: int) -> list[str]:
-    """Names of the classes with at least min_examples entries."""
-    return [c for c, n in class_counts(bank).items() if n >= min_examples]
+    """Names of the classes with at least min_examples examples (`example_counts`)."""
+    counts = example_counts(bank).tolist()
+    return [c for c, n in zip(bank.class_names, counts, strict=True) if n >= min_examples]
 
 
 # ------------------------------------------------------------------------------ operations
@@ -164,21 +175,29 @@ class BankFile:
 
 def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
                  source: str = 'api', policy: RefitPolicy | None = None,
-                 when: datetime | None = None) -> EnrollResult:
+                 when: datetime | None = None, augment: str = 'none') -> EnrollResult:
     """Add encoder features of new examples under `class_name` (new or existing class).
 
-    features: (M, D) float32 raw encoder output (D = the bank's encoder feature_dim), M >= 1.
-    Returns a new bank (version + 1); `bf` is left untouched. A two-section bank takes the
-    examples into both sections (each through its own transform and head), so the class
-    is predicted whichever section the gate favours.
+    features: (M * k, D) float32 raw encoder output (D = the bank's encoder feature_dim),
+    M >= 1 examples, each encoded in the k frames of `augment` (core/augment.py; k = 1 for
+    'none'), example-major as `encode_clouds(..., augment=augment)` returns them. Every row
+    becomes an entry; the class counts M examples (min_examples), near-duplicates are checked
+    on the canonical frames. Returns a new bank (version + 1); `bf` is left untouched. A
+    two-section bank takes the examples into both sections (each through its own transform
+    and head), so the class is predicted whichever section the gate favours.
     """
     if bf.views is not None:
-        return _both_sections(add_examples, bf, features, class_name, source, policy, when)
+        return _both_sections(add_examples, bf, features, class_name, source, policy,
+                              when=when, augment=augment)
     bank, policy = bf.bank, policy or RefitPolicy()
     class_name = _check_name(class_name)
-    if features.ndim != 2 or features.shape[0] == 0:
-        raise EnrollError(f'expected (M, {bank.transform.in_dim}) features with M >= 1, got '
-                          f'{tuple(features.shape)}')
+    try:
+        k = variants_per_example(augment)
+    except ValueError as e:
+        raise EnrollError(str(e)) from None
+    if features.ndim != 2 or features.shape[0] == 0 or features.shape[0] % k:
+        raise EnrollError(f'expected (M * {k}, {bank.transform.in_dim}) features with M >= 1 '
+                          f'(augment {augment!r}), got {tuple(features.shape)}')
     if features.shape[1] != bank.transform.in_dim:
         raise EnrollError(f'features have {features.shape[1]} dims, the bank encoder gives '
                           f'{bank.transform.in_dim}')
@@ -193,17 +212,25 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
     if new_class:
         names.append(class_name)
     cid = names.index(class_name)
-    dups, n_dups = near_duplicates(new, bank, cid, policy.duplicate_cosine)
+    # Canonical frames only: the k frames of one example are alike by construction.
+    dups, n_dups = near_duplicates(new[::k], bank, cid, policy.duplicate_cosine)
     feats = torch.cat([bank.features, new])
     labels = torch.cat([bank.labels, torch.full((len(new),), cid, dtype=torch.int64)])
-    meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups)
+    extra = {} if k == 1 else {'examples': len(new) // k, 'augment': augment}
+    meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups,
+                **extra)
+    if k > 1:
+        aug = dict(meta.get('augmented_entries', {}))
+        aug[class_name] = int(aug.get(class_name, 0)) + len(new) - len(new) // k
+        meta['augmented_entries'] = aug
     # z of the new rows as a full refit would recover them from the stored values.
     stats = None if bf.stats is None else bf.stats.add(vote_to_z(new, bank.head), cid)
     out, moved = refit(replace(bank, features=feats, labels=labels, class_names=names,
                                meta=meta, path=None), policy, stats)
     stored = np.concatenate([bf.stored, stored_new])
     return EnrollResult(_restore(out, stored, moved, stats), 'add', class_name, len(new),
-                        new_class, tuple(dups), n_dups, out.meta['refit'])
+                        new_class, tuple(dups), n_dups, out.meta['refit'], augment,
+                        len(new) // k)
 
 
 def remove_class(bf: BankFile, class_name: str, source: str = 'api',
@@ -214,7 +241,7 @@ def remove_class(bf: BankFile, class_name: str, source: str = 'api',
     A two-section bank loses the class in both sections.
     """
     if bf.views is not None:
-        return _both_sections(remove_class, bf, class_name, source, policy, when)
+        return _both_sections(remove_class, bf, class_name, source, policy, when=when)
     bank, policy = bf.bank, policy or RefitPolicy()
     if class_name not in bank.class_names:
         raise EnrollError(f'no class {class_name!r} in the bank (classes: '
@@ -228,6 +255,9 @@ def remove_class(bf: BankFile, class_name: str, source: str = 'api',
     names = [n for n in bank.class_names if n != class_name]
     removed = int((~keep).sum())
     meta = _log(bank, 'remove', class_name, removed, source, when)
+    if class_name in meta.get('augmented_entries', {}):
+        meta['augmented_entries'] = {c: n for c, n in meta['augmented_entries'].items()
+                                     if c != class_name}
     stats = None if bf.stats is None else bf.stats.remove(
         vote_to_z(bank.features[~keep], bank.head), cid)
     out, moved = refit(replace(bank, features=bank.features[keep], labels=labels,
@@ -307,18 +337,18 @@ def _restore(bank: FeatureBank, stored: np.ndarray, moved: bool,
     return BankFile(replace(bank, features=_from_stored(stored)), stored, stats)
 
 
-def _both_sections(op, bf: BankFile, *args: Any) -> EnrollResult:  # noqa: ANN001
+def _both_sections(op, bf: BankFile, *args: Any, when: datetime | None = None,  # noqa: ANN001
+                   **kwargs: Any) -> EnrollResult:
     """Run an enrollment operation on each section of a two-section bank, one timestamp.
 
     -> the main section's result with the scan section's bank attached (the gate is kept:
     it tells complete objects from scans, whatever their class).
     """
-    *rest, when = args
     when = when or datetime.now(UTC)
     assert bf.views is not None
     main = op(BankFile(replace(bf.bank, views=None, gate=None), bf.stored, bf.stats),
-              *rest, when)
-    views = op(bf.views, *rest, when)
+              *args, when=when, **kwargs)
+    views = op(bf.views, *args, when=when, **kwargs)
     bank = replace(main.bank, views=views.bank, gate=bf.bank.gate)
     return replace(main, file=replace(main.file, bank=bank, views=views.file))
 

@@ -74,10 +74,14 @@ class LiveBank(Generic[Model]):
         return self._snap
 
     def add(self, features: torch.Tensor, class_name: str, source: str,
-            when: datetime | None = None) -> EnrollResult:
-        """features: (M, D) float32 raw encoder output -> the result; publishes the new version."""
+            when: datetime | None = None, augment: str = 'none') -> EnrollResult:
+        """features: (M * k, D) float32 raw encoder output -> the result; publishes it.
+
+        augment: how the examples were encoded (k frames each, see `add_examples`).
+        """
         with self._lock:
-            res = add_examples(self._snap.file, features, class_name, source, self.policy, when)
+            res = add_examples(self._snap.file, features, class_name, source, self.policy, when,
+                               augment)
             self._snap = self._snapshot(res.file)
         return res
 

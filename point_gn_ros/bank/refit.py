@@ -20,6 +20,7 @@ from point_gn_ros.bank.head import CovarianceFit, Head, fit_head
 from point_gn_ros.bank.selection import (DEFAULT_GAMMAS, calibrate_novelty, calibrate_unknown,
                                          select)
 from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.errors import PointGNError
 
 # Cosine (in the bank's transformed space) at or above which two examples are reported as
@@ -32,6 +33,7 @@ AUTO_CV_MAX_ENTRIES = 2000
 _ABSENT_BIAS = -1e4
 
 GammaPolicy = Literal['keep', 'cv', 'auto']
+LdaPrior = Literal['entries', 'balanced']
 CalibrationPolicy = Literal['keep', 'recalibrate', 'auto']
 
 
@@ -117,8 +119,12 @@ class RefitPolicy:
     bank has <= cv_max_entries entries, else 'keep'.
     calibration (open-set threshold): 'recalibrate' from held-out CV scores, 'keep' the stored
     one, 'auto' = recalibrate exactly when gamma was re-chosen by CV (the scores come free).
-    min_examples: classes with fewer entries are kept in the bank but not predicted (see
+    min_examples: classes with fewer examples are kept in the bank but not predicted (see
     `active_view`) and do not take part in the fit.
+    lda_prior: the LDA class priors of the refitted head: 'entries' (each class's share of
+    the bank's entries, as built) or 'balanced' (equal priors: a 5-example class is not
+    penalised against 250-example ones; class sizes reflect how many examples were
+    collected, not how often a class is seen).
     """
 
     gamma: GammaPolicy = 'auto'
@@ -127,8 +133,11 @@ class RefitPolicy:
     folds: int = 5
     cv_max_entries: int = AUTO_CV_MAX_ENTRIES
     duplicate_cosine: float = DUPLICATE_COSINE
+    lda_prior: LdaPrior = 'entries'
 
     def __post_init__(self) -> None:
+        if self.lda_prior not in ('entries', 'balanced'):
+            raise ValueError(f'lda_prior must be entries or balanced, got {self.lda_prior!r}')
         if self.gamma not in ('keep', 'cv', 'auto'):
             raise ValueError(f'gamma policy must be keep, cv or auto, got {self.gamma!r}')
         if self.calibration not in ('keep', 'recalibrate', 'auto'):
@@ -138,14 +147,59 @@ class RefitPolicy:
             raise ValueError('min_examples must be >= 1 and folds >= 2')
 
 
+def example_counts(bank: FeatureBank) -> torch.Tensor:
+    """Examples per class (C,) int64: entries, less the extra frames of augmented enrollments.
+
+    An example enrolled with augmentation (core/augment.py) is k entries; the bank's meta
+    `augmented_entries` {class: entries beyond one per example} records the difference.
+    """
+    counts = torch.bincount(bank.labels, minlength=bank.num_classes)
+    for name, extra in bank.meta.get('augmented_entries', {}).items():
+        if name in bank.class_names:
+            counts[bank.class_names.index(name)] -= int(extra)
+    return counts
+
+
+def example_groups(bank: FeatureBank) -> np.ndarray | None:
+    """(N,) int64 group per entry (the k frames of an augmented example share one), or None.
+
+    None when nothing was augmented (every entry is its own example).
+
+    Rebuilt from the enrollment log: an add appends its rows example-major at the end, a
+    removal drops the whole class, so a class's rows are its built rows, then each add since
+    its last removal in log order. CV (`refit`) keeps a group in one fold: a held-out example
+    must not be matched by its own mirror. A class whose log does not add up stays ungrouped.
+    """
+    aug = bank.meta.get('augmented_entries', {})
+    if not aug:
+        return None
+    labels = bank.labels.numpy()
+    groups = np.arange(len(labels))
+    for name in aug:
+        if name not in bank.class_names:
+            continue
+        rows = np.flatnonzero(labels == bank.class_names.index(name))
+        adds: list[tuple[int, int]] = []
+        for e in bank.meta.get('enrollments', []):
+            if e.get('class') == name:
+                adds = [] if e.get('action') == 'remove' else [
+                    *adds, (int(e['count']), variants_per_example(e.get('augment', 'none')))]
+        pos = len(rows) - sum(n for n, _ in adds)
+        if pos < 0:
+            continue
+        for n, k in adds:
+            groups[rows[pos:pos + n]] = rows[pos + (np.arange(n) // k) * k]
+            pos += n
+    return groups
+
+
 def active_view(bank: FeatureBank, min_examples: int) -> FeatureBank:
-    """The bank a classifier should use: entries of classes with >= min_examples only.
+    """The bank a classifier should use: entries of classes with >= min_examples examples.
 
     Class names (and so class ids) are unchanged; a class below the minimum simply gets no
     votes. Returns `bank` itself when every class qualifies (the common case: no copy).
     """
-    counts = torch.bincount(bank.labels, minlength=bank.num_classes)
-    ok = counts >= min_examples
+    ok = example_counts(bank) >= min_examples
     if bool(ok.all()):
         return bank
     keep = ok[bank.labels]
@@ -179,8 +233,9 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
     view = active_view(bank, policy.min_examples)
     meta = copy.deepcopy(bank.meta)
     labels_all = view.labels.numpy()
-    counts = np.bincount(labels_all, minlength=bank.num_classes)
-    present = np.flatnonzero(counts > 0)                  # class ids that take part
+    present = np.flatnonzero(np.bincount(labels_all, minlength=bank.num_classes) > 0)
+    counts = example_counts(view).numpy()                 # examples, not augmented frames
+    groups = example_groups(view)                         # whole classes: rows keep order
     compact = torch.from_numpy(np.searchsorted(present, labels_all))
     gamma, gamma_reason, sel = bank.gamma, 'kept', None
     want_cv = policy.gamma == 'cv' or (
@@ -195,7 +250,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                      tuple(grid.get('gammas') or DEFAULT_GAMMAS), ('none',), (None,), folds,
                      alphas=tuple(grid.get('alphas') or ()),
                      lda_alphas=tuple(grid.get('lda_alphas') or grid.get('alphas') or ()),
-                     weights=tuple(grid.get('weights') or (0.0,)))
+                     weights=tuple(grid.get('weights') or (0.0,)), groups=groups)
         gamma, gamma_reason = float(sel.gamma), (
             f'{sel.folds_used}-fold CV on the bank: {100 * sel.cv_accuracy:.1f} %')
         new_head = fit_head(z_view, compact, len(present), sel.gamma, sel.alpha, sel.lda_alpha,
@@ -216,6 +271,11 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                 lda = CovarianceFit.fit(z_view, compact, len(present)).lda(lda_alpha)
             coef, bias = lda
             new_head = replace(head, lda_coef=coef, lda_bias=bias)
+    if new_head is not None and new_head.lda_bias is not None and policy.lda_prior == 'balanced':
+        # Both fits above use entry-share priors: swap them for equal ones.
+        n = torch.from_numpy(np.bincount(labels_all)[present]).double()
+        shift = (n.sum() / n).log() - np.log(len(present))
+        new_head = replace(new_head, lda_bias=new_head.lda_bias + shift.float())
     if new_head is not None:
         new_head = _expand_lda(replace(new_head, gamma=gamma), present, bank.num_classes)
         if new_head.is_plain_vote and new_head.temperature == 1.0:
@@ -228,13 +288,14 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
         z_all = vote_to_z(bank.features, head)
         features = z_all if new_head is None else new_head.vote_space(z_all)
     cal_reason = _recalibrate(meta, bank, view, compact, present, gamma, new_head, sel, policy,
-                              folds, z_view)
+                              folds, z_view, groups)
     meta['refit'] = {'version': int(meta.get('bank_version', 0)), 'gamma': gamma,
                      'gamma_reason': gamma_reason,
                      'head': ('none (plain kernel vote)' if new_head is None else
                               'refitted in closed form' + (', knobs by CV' if sel else
                                                            ', knobs kept')),
                      'calibration_reason': cal_reason, 'min_examples': policy.min_examples,
+                     'lda_prior': policy.lda_prior,
                      'predicted_classes': int(len(present))}
     return replace(bank, features=features, gamma=gamma, meta=meta, head=new_head), rewhiten
 
@@ -264,7 +325,8 @@ def _expand_lda(head: Head, present: np.ndarray, num_classes: int) -> Head:
 
 def _recalibrate(meta: dict, bank: FeatureBank, view: FeatureBank, compact: torch.Tensor,
                  present: np.ndarray, gamma: float, head: Head | None, sel: Any,
-                 policy: RefitPolicy, folds: int, z_view: torch.Tensor | None) -> str:
+                 policy: RefitPolicy, folds: int, z_view: torch.Tensor | None,
+                 groups: np.ndarray | None = None) -> str:
     """Update meta's open-set calibration per policy; -> what was done."""
     calib = meta.get('unknown_calibration')
     recal = policy.calibration == 'recalibrate' or (policy.calibration == 'auto'
@@ -279,7 +341,7 @@ def _recalibrate(meta: dict, bank: FeatureBank, view: FeatureBank, compact: torc
         sel = select(z_view, np.asarray(compact), len(present), (gamma,), ('none',), (None,),
                      folds, alphas=() if alpha is None else (float(alpha),),
                      lda_alphas=() if lda_alpha is None or w == 0 else (float(lda_alpha),),
-                     weights=(w,), whiten_options=(alpha is not None,))
+                     weights=(w,), whiten_options=(alpha is not None,), groups=groups)
     rate = float((calib or {}).get('false_reject_rate', 0.05))
     # Whatever measure each stored rule thresholds stays the same (the unknown rule is the
     # calibrated probability by default; older banks thresholded novelty there).

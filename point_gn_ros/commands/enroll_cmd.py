@@ -33,6 +33,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument('--split', default='train', help='dataset input: split (default train)')
     a.add_argument('--limit', type=int, default=None, metavar='N',
                    help='take at most the first N examples')
+    a.add_argument('--augment', choices=('none', 'mirror', 'rot4', 'd4'), default='none',
+                   help="store each example in these frames (core/augment.py): 'd4' = the 8 "
+                        'frames the yaw alignment confuses on partial scans (8 entries per '
+                        "example); default 'none'")
     _common(a)
     a.set_defaults(func=_add)
 
@@ -58,15 +62,20 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="open-set threshold: 'keep', 'recalibrate' on held-out folds, or "
                         "'auto' (recalibrate when gamma is re-chosen; default)")
     p.add_argument('--min-examples', type=int, default=1,
-                   help='classes with fewer entries take no part in the refit (default 1)')
+                   help='classes with fewer examples take no part in the refit (default 1)')
     p.add_argument('--folds', type=int, default=5, help='CV folds for the refit (default 5)')
+    p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries',
+                   help="LDA class priors of the refitted head: each class's share of the "
+                        "entries (default) or 'balanced' (equal: few-example classes are not "
+                        'penalised)')
     add_encoder_args(p)
 
 
 def _policy(args: argparse.Namespace):
     from point_gn_ros.bank.enroll import RefitPolicy
     return RefitPolicy(gamma=args.gamma, calibration=args.calibration,
-                       min_examples=args.min_examples, folds=args.folds)
+                       min_examples=args.min_examples, folds=args.folds,
+                       lda_prior=args.lda_prior)
 
 
 def _read_inputs(args: argparse.Namespace) -> tuple[list, str]:
@@ -124,9 +133,9 @@ def _add(args: argparse.Namespace) -> int:
     if not clouds or empty:
         raise EnrollError(f'no usable example: {len(clouds)} input(s), empty: {empty}')
     encoder = make_encoder(bf.bank.config, args.device)
-    feats = encode_clouds(clouds, encoder, batch_size=args.batch_size)
+    feats = encode_clouds(clouds, encoder, batch_size=args.batch_size, augment=args.augment)
     res = add_examples(bf, feats, args.class_name, source=f'point_gn bank add: {source}',
-                       policy=_policy(args))
+                       policy=_policy(args), augment=args.augment)
     return _write(args, res)
 
 
@@ -148,8 +157,9 @@ def _history(args: argparse.Namespace) -> int:
     print('  ' + ', '.join(f'{c} {n}' for c, n in class_counts(bank).items()))
     for e in bank.meta.get('enrollments', []):
         dups = f', {e["near_duplicates"]} near-duplicate(s)' if e.get('near_duplicates') else ''
+        aug = f' ({e["examples"]} examples, {e["augment"]})' if e.get('augment') else ''
         print(f'  v{e["version"]} {e["time"]} {e["action"]} {e["class"]!r} x{e["count"]}'
-              f'{dups} ({e["source"]})')
+              f'{aug}{dups} ({e["source"]})')
     refit = bank.meta.get('refit')
     if refit:
         print(f'  last refit (v{refit["version"]}): gamma {refit["gamma"]:g} '

@@ -28,6 +28,7 @@ import torch
 
 from point_gn_ros.bank.enroll import EnrollError, EnrollResult
 from point_gn_ros.bank.live import LiveBank, Snapshot
+from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.errors import PointGNError
 
 # How long a service waits for the committer (forget, save) before answering "still running".
@@ -61,15 +62,19 @@ class EnrollEngine:
     the committer thread after every published version; log(text) / warn(key, text): info
     and rate-limited warning sinks; chunk: examples encoded per worker step; max_pending:
     examples waiting at most (beyond it a submission is refused and counted); capture_max:
-    objects one capture keeps at most; min_points: smaller examples are refused.
+    objects one capture keeps at most; min_points: smaller examples are refused; augment:
+    the frames each example is stored in (core/augment.py; k encodings per example, so a
+    worker step encodes chunk // k examples and still costs about one micro-batch).
     """
 
     def __init__(self, live: LiveBank, on_change: Callable[[Snapshot, EnrollResult], None],
                  log: Callable[[str], object], warn: Callable[[Hashable, str], object],
                  chunk: int = 32, max_pending: int = 512, capture_max: int = 200,
-                 min_points: int = 16) -> None:
+                 min_points: int = 16, augment: str = 'none') -> None:
         self.live = live
-        self.chunk, self.max_pending = chunk, max_pending
+        self.augment = augment
+        self.chunk = max(1, chunk // variants_per_example(augment))
+        self.max_pending = max_pending
         self.capture_max, self.min_points = capture_max, min_points
         self._on_change, self._log, self._warn = on_change, log, warn
         self._lock = threading.Lock()
@@ -178,7 +183,7 @@ class EnrollEngine:
             req = self._requests[0]
             todo = req.clouds[req.encoded:req.encoded + self.chunk]
         try:
-            req.feats.append(recognizer.encode(todo))
+            req.feats.append(recognizer.encode(todo, augment=self.augment))
         except Exception as exc:  # noqa: BLE001 - one bad example costs its request only
             self._drop_head(req, f'encoding failed: {type(exc).__name__}: {exc}')
             return bool(self._requests)
@@ -196,7 +201,8 @@ class EnrollEngine:
 
     def _commit(self, req: _Request) -> None:
         try:
-            res = self.live.add(torch.cat(req.feats), req.class_name, req.source)
+            res = self.live.add(torch.cat(req.feats), req.class_name, req.source,
+                                augment=self.augment)
         except (EnrollError, PointGNError, ValueError) as exc:
             self.report_error(f'enrollment of {req.class_name!r} refused: {exc}')
             return
@@ -205,7 +211,7 @@ class EnrollEngine:
                               f'{type(exc).__name__}: {exc}')
             return
         self.last_latency_s = time.monotonic() - req.received
-        self._count('enrolled', res.count)
+        self._count('enrolled', res.examples)
         self._count('enrollments', 1)
         self._count('near_duplicates', res.duplicate_count)
         self._changed(res)

@@ -19,7 +19,8 @@ Standard interfaces only (no custom message package), all in the node's private 
 
 Every change makes a new bank version (copy-on-write, bank/enroll.py) that the worker picks
 up between two micro-batches (Pipeline.update): each answer is computed with one version.
-Classes with fewer than ``min_examples_per_class`` entries are kept but not predicted.
+Classes with fewer than ``min_examples_per_class`` examples are kept but not predicted;
+``enroll_augment`` stores each example in several frames (core/augment.py).
 Examples are turned z-up like the objects the node classifies (frames.py) and encoded on the
 worker between micro-batches (node/enroll_engine.py).
 """
@@ -45,6 +46,7 @@ from std_srvs.srv import Trigger
 
 from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
 from point_gn_ros.bank.live import LiveBank, Snapshot
+from point_gn_ros.core.augment import AUGMENTS
 from point_gn_ros.errors import DecodeError, PointGNError
 from point_gn_ros.node.enroll_engine import EnrollEngine
 from point_gn_ros.node.frames import to_z_up
@@ -72,6 +74,13 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     'enroll_refit_gamma': ('auto', "After a change: 'keep' gamma, re-choose it by 'cv', or "
                                    "'auto' (CV on banks of <= 2,000 entries).",
                            {'additional_constraints': "one of 'auto', 'keep', 'cv'"}),
+    'enroll_lda_prior': ('entries', "LDA class priors after a change: 'entries' (class shares "
+                                    "of the bank) or 'balanced' (equal priors).",
+                         {'additional_constraints': "one of 'entries', 'balanced'"}),
+    'enroll_augment': ('none', "Frames each example is stored in (core/augment.py): 'none', "
+                               "'mirror', 'rot4' or 'd4' (8 entries per example: the frames "
+                               'the yaw alignment confuses on partial scans).',
+                       {'additional_constraints': "one of 'none', 'mirror', 'rot4', 'd4'"}),
     'enroll_max_pending': (512, 'Examples waiting to be encoded at most; beyond, refused.',
                            {'integer_range': [IntegerRange(from_value=1, to_value=100_000,
                                                            step=1)]}),
@@ -112,7 +121,17 @@ class Enrollment(ManagedEntity):
         if gamma not in ('auto', 'keep', 'cv'):
             log.error(f'parameter enroll_refit_gamma={gamma!r} must be one of auto, keep, cv')
             return TransitionCallbackReturn.FAILURE
-        policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'])
+        augment = self.values['enroll_augment']
+        if augment not in AUGMENTS:
+            log.error(f'parameter enroll_augment={augment!r} must be one of '
+                      f'{", ".join(AUGMENTS)}')
+            return TransitionCallbackReturn.FAILURE
+        prior = self.values['enroll_lda_prior']
+        if prior not in ('entries', 'balanced'):
+            log.error(f'parameter enroll_lda_prior={prior!r} must be entries or balanced')
+            return TransitionCallbackReturn.FAILURE
+        policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'],
+                             lda_prior=prior)
         try:
             self.live = LiveBank(_bank_file(node.recognizer.bank), self._make_model, policy)
             node.replace_recognizer(self.live.current().model)
@@ -125,7 +144,8 @@ class Enrollment(ManagedEntity):
         self.engine = EnrollEngine(
             self.live, self._swap, log.info, node._warn, chunk=node.settings.max_batch,
             max_pending=self.values['enroll_max_pending'],
-            capture_max=self.values['capture_max'], min_points=node.settings.min_points)
+            capture_max=self.values['capture_max'], min_points=node.settings.min_points,
+            augment=augment)
         self._pipeline.observe = self._observe
         self._pipeline.between_batches = self._between_batches
         return TransitionCallbackReturn.SUCCESS
