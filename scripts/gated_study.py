@@ -19,7 +19,8 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.builder import encode_dataset
-from point_gn_ros.bank.head import CovarianceFit, fit_head
+from point_gn_ros.bank.gate import Gate
+from point_gn_ros.bank.head import fit_head
 from point_gn_ros.bank.selection import stratified_folds
 from point_gn_ros.bank.transform import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
@@ -44,7 +45,6 @@ def main() -> None:
     p.add_argument('dataset')
     p.add_argument('--cache', required=True)
     p.add_argument('--subset', type=int, default=3)
-    p.add_argument('--gate-dims', type=int, default=64)
     p.add_argument('--scan-dims', type=int, nargs='+', default=[224])
     p.add_argument('--complete-dims', type=int, default=640)
     p.add_argument('--scan-includes-complete', action='store_true')
@@ -76,12 +76,7 @@ def main() -> None:
         comp = expert(feats, labels, trc, c, args.complete_dims, 80.0, 0.1, 0.02, 0.2, 3.98)
         p_c = comp(q)[0]
         put('complete expert alone', va, p_c.argmax(1))
-        # gate: 2-class LDA complete vs scan on a small PCA of the standardised features
-        gtf = FeatureTransform.fit(feats[tr], 'standardize', args.gate_dims)
-        gz = gtf(feats[tr])
-        gfit = CovarianceFit.fit(gz, torch.from_numpy(scan[tr].astype(np.int64)), 2)
-        coef, bias = gfit.lda(0.01)
-        g = torch.softmax(gtf(q) @ coef.T + bias, dim=1)[:, 1]
+        g = Gate.fit(feats[tr], scan[tr]).scan_probability(q)
         gate_right[va] = (g.numpy() > 0.5) == scan[va]
         for sd in args.scan_dims:
             trs = tr if args.scan_includes_complete else tr[scan[tr]]

@@ -23,7 +23,7 @@ def _bank(n: int = 30, classes: int = 3, dims: int | None = None) -> FeatureBank
                        transform=tf, gamma=50.0, meta={'provenance': {'dataset': 'x'}})
 
 
-@pytest.mark.parametrize('dtype', ['float16', 'float32'])
+@pytest.mark.parametrize('dtype', ['float16', 'float32', 'int8'])
 @pytest.mark.parametrize('dims', [None, 16])
 def test_round_trip(tmp_path: Path, dtype: str, dims: int | None) -> None:
     bank = _bank(dims=dims)
@@ -32,8 +32,9 @@ def test_round_trip(tmp_path: Path, dtype: str, dims: int | None) -> None:
     assert back.class_names == bank.class_names and back.gamma == 50.0
     assert back.config == bank.config
     assert torch.equal(back.labels, bank.labels)
-    tol = 2e-3 if dtype == 'float16' else 1e-6
+    tol = {'float16': 2e-3, 'float32': 1e-6, 'int8': 1e-2}[dtype]
     assert torch.allclose(back.features, bank.features, atol=tol)
+    assert float((back.features * bank.features).sum(1).min()) > 1 - tol
     x = torch.randn(4, EncoderConfig().feature_dim)
     assert torch.allclose(back.transform(x), bank.transform(x), atol=1e-5)
     assert back.meta['stored_dtype'] == dtype and back.meta['encoder_version'] == 1

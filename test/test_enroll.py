@@ -141,7 +141,7 @@ def test_refit_policies() -> None:
     assert recal.gamma == 50.0 and recal.meta['unknown_calibration']['threshold'] != 0.5
 
 
-@pytest.mark.parametrize('dtype', ['float16', 'float32'])
+@pytest.mark.parametrize('dtype', ['float16', 'float32', 'int8'])
 def test_save_load_is_bit_exact(tmp_path: Path, dtype: str) -> None:
     bf, centres = _bank(dtype=dtype)
     res = add_examples(bf, _queries(centres[1] * 1.5, 6, 11), 'new')

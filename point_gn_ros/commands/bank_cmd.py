@@ -41,8 +41,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument('--cv-every', type=int, default=1, metavar='N',
                    help='cross-validate on every N-th object (with its views) only, then fit '
                         'the chosen knobs on all (CV cost grows with the square of the bank)')
-    b.add_argument('--dtype', choices=('float16', 'float32'), default='float16',
-                   help='stored feature precision (default float16)')
+    b.add_argument('--dtype', choices=('float16', 'float32', 'int8'), default='float16',
+                   help='stored feature precision (default float16; int8: a quarter of '
+                        'float32, cosines within ~1e-3)')
+    b.add_argument('--sections', action='store_true',
+                   help='with --views: keep complete objects and scans as two sections, each '
+                        'with its own knobs chosen by CV (complete: --dims; scans: '
+                        '--views-dims, CV on every --cv-every-th object), mixed at query time '
+                        'by a gate that tells complete objects from scans (bank/sections.py)')
+    b.add_argument('--views-dims', type=int, nargs='+', default=None,
+                   help='with --sections: candidate PCA dims of the scan section (default: '
+                        'as --dims)')
     b.add_argument('--dims', type=int, nargs='+', default=None,
                    help='candidate PCA dimensions to choose from by CV (0 = all dims)')
     b.add_argument('--standardize', nargs='+', default=['none', 'standardize'],
@@ -85,8 +94,10 @@ def _build(args: argparse.Namespace) -> int:
     overrides['yaw_align'] = args.yaw_align
     cfg = EncoderConfig(**overrides)
     dims = [None if d == 0 else d for d in (args.dims or [0])]
+    if args.sections and not args.views:
+        raise SystemExit('bank build: --sections needs --views K')
     if args.default_bank:
-        args.dtype = 'float16'
+        args.dtype = 'int8' if args.dtype == 'int8' else 'float16'
         dims = args.dims and dims or [512, 640]
         args.standardize = ['standardize']
     print(f'{ds.format} {ds.split}: {len(ds)} objects, {len(ds.class_names)} classes')
@@ -110,12 +121,15 @@ def _build(args: argparse.Namespace) -> int:
     if args.cv_every > 1:
         source = groups if groups is not None else np.arange(len(ds))
         cv_subset = np.flatnonzero(source % args.cv_every == 0)
-    bank = build_bank(ds, cfg, args.device, standardize_options=tuple(args.standardize),
-                      dims_options=tuple(dims), folds=args.folds,
-                      false_reject_rate=args.false_reject_rate,
-                      cache_dir=Path(args.cache) if args.cache else None, alphas=alphas,
-                      weights=tuple(args.weights or DEFAULT_WEIGHTS), groups=groups,
-                      cv_subset=cv_subset)
+    common = dict(standardize_options=tuple(args.standardize), folds=args.folds,
+                  false_reject_rate=args.false_reject_rate, alphas=alphas,
+                  weights=tuple(args.weights or DEFAULT_WEIGHTS))
+    cache = Path(args.cache) if args.cache else None
+    if args.sections:
+        bank = _build_sections(ds, cfg, args, dims, cv_subset, cache, common)
+    else:
+        bank = build_bank(ds, cfg, args.device, dims_options=tuple(dims), cache_dir=cache,
+                          groups=groups, cv_subset=cv_subset, **common)
     if views_meta is not None:
         bank.meta['views'] = views_meta
     path = bank.save(args.output, dtype=args.dtype)
@@ -123,6 +137,35 @@ def _build(args: argparse.Namespace) -> int:
     print('\n'.join(describe_selection(bank.meta)))
     print(f'wrote {path} ({path.stat().st_size / 1e6:.1f} MB): {len(bank)} entries')
     return 0
+
+
+def _build_sections(ds, cfg, args: argparse.Namespace, dims: list,  # noqa: ANN001
+                    cv_subset, cache: Path | None, common: dict):  # noqa: ANN001, ANN202
+    """A two-section bank (bank/sections.py) from a views dataset, encoded once."""
+    import numpy as np
+    import torch
+
+    from point_gn_ros.bank.builder import build_bank, encode_dataset
+    from point_gn_ros.bank.sections import RowsDataset, combine_sections
+    from point_gn_ros.recognizer import make_encoder
+
+    feats = encode_dataset(ds, make_encoder(cfg, args.device), cache_dir=cache)
+    scan = np.asarray(ds.view_index) >= 0
+    views_dims = [None if d == 0 else d for d in args.views_dims] if args.views_dims else dims
+    print(f'section 1, complete objects: {int((~scan).sum())} entries, CV on all of them')
+    complete = build_bank(RowsDataset(ds, ~scan, 'complete'), cfg, args.device,
+                          feats=feats[torch.from_numpy(~scan)], dims_options=tuple(dims),
+                          **common)
+    print('\n'.join(describe_selection(complete.meta)))
+    sub = None if cv_subset is None else np.flatnonzero(np.isin(
+        np.flatnonzero(scan), cv_subset))
+    print(f'section 2, single-view scans: {int(scan.sum())} entries, CV grouped by object'
+          + ('' if sub is None else f' on {len(sub)} of them'))
+    views = build_bank(RowsDataset(ds, scan, 'scans'), cfg, args.device,
+                       feats=feats[torch.from_numpy(scan)], dims_options=tuple(views_dims),
+                       groups=np.asarray(ds.groups)[scan], cv_subset=sub, **common)
+    print('\n'.join(describe_selection(views.meta)))
+    return combine_sections(complete, views, feats, scan)
 
 
 def _report_input(ds, cfg, args: argparse.Namespace, dims: list) -> None:  # noqa: ANN001
@@ -220,6 +263,15 @@ def _info(args: argparse.Namespace) -> int:
         return 0
     print(f'{bank.path}: {bank.summary()}')
     print('\n'.join(describe_selection(bank.meta)))
+    if bank.views is not None:
+        g = bank.meta.get('gate', {})
+        print(f'  single-view section: {len(bank.views)} entries')
+        print('\n'.join('  ' + line for line in describe_selection(bank.views.meta)))
+        print(f'  gate (complete vs scan): LDA on {g.get("dims") or "all"} dims, shrinkage '
+              f'{g.get("shrinkage")}, {g.get("priors")} priors; routes '
+              f'{100 * g.get("train_routing_complete", float("nan")):.1f} % of complete '
+              f'objects and {100 * g.get("train_routing_scans", float("nan")):.1f} % of '
+              f'scans right on the bank itself')
     prov = bank.meta.get('provenance', {})
     print(f'  created {prov.get("created", "?")}; classes: {", ".join(bank.class_names)}')
     return 0

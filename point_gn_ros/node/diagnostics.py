@@ -104,6 +104,7 @@ class DiagnosticsBuilder:
                                        message=bank.summary(), hardware_id=s.device)
         bank_status.values = key_values({
             'path': str(bank.path), 'entries': len(bank), 'classes': bank.num_classes,
+            'single_view_entries': 0 if bank.views is None else len(bank.views),
             'num_points': bank.config.num_points, 'resample': s.resample, 'top_k': s.top_k,
             'unknown_threshold': unknown_threshold or 0.0})
         statuses.append(bank_status)

@@ -432,13 +432,21 @@ def _bank_file(bank: Any) -> BankFile:
         try:
             with np.load(bank.path, allow_pickle=False) as z:
                 stored = z['features']
-            if stored.shape == tuple(bank.features.shape) and torch.equal(
-                    torch.nn.functional.normalize(
-                        torch.from_numpy(stored.astype(np.float32)), dim=1), bank.features):
-                return BankFile(bank, stored)
+                views = z['views_features'] if bank.views is not None else None
+            if _matches(stored, bank.features) and (
+                    views is None or _matches(views, bank.views.features)):
+                return BankFile(bank, stored, views=None if views is None
+                                else BankFile(bank.views, views))
         except (OSError, KeyError, ValueError):
             pass                 # the file changed or went away since the node loaded it
     return BankFile.of(bank)
+
+
+def _matches(stored: np.ndarray, features: torch.Tensor) -> bool:
+    """Whether the loaded rows are exactly the normalised stored values."""
+    return stored.shape == tuple(features.shape) and torch.equal(
+        torch.nn.functional.normalize(torch.from_numpy(stored.astype(np.float32)), dim=1),
+        features)
 
 
 def _answer(response: Any, ok: bool, message: str) -> Any:
