@@ -61,6 +61,7 @@ class Classification:
     topk_scores: np.ndarray
     probability: np.ndarray | None = None
     novelty: np.ndarray | None = None
+    partial: np.ndarray | None = None    # (B,) gate's p(single-view scan); two-section banks
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -169,14 +170,20 @@ class Classifier:
     @torch.no_grad()
     def evaluate(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """features: (B, D) raw encoder output -> probability (B, C), novelty (B,)."""
+        return self._evaluate(features)[:2]
+
+    def _evaluate(self, features: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """-> probability (B, C), novelty (B,), gate's p(scan) (B,) or None."""
         features = features.to(self.device)
         prob, novelty = self.head.evaluate_with(self.transform(features), self.search)
         if self.views is None or self.gate is None:
-            return prob, novelty
+            return prob, novelty, None
         p_scan = self.gate.scan_probability(features)
         prob_v, novelty_v = self.views.evaluate(features)
         g = p_scan[:, None]
-        return (1 - g) * prob + g * prob_v, (1 - p_scan) * novelty + p_scan * novelty_v
+        return ((1 - g) * prob + g * prob_v, (1 - p_scan) * novelty + p_scan * novelty_v,
+                p_scan)
 
     @torch.no_grad()
     def scores(self, features: torch.Tensor) -> torch.Tensor:
@@ -186,7 +193,7 @@ class Classifier:
     @torch.no_grad()
     def classify(self, features: torch.Tensor, top_k: int = 5) -> Classification:
         """features: (B, D) float32 raw encoder output -> Classification."""
-        prob, novelty = self.evaluate(features)
+        prob, novelty, partial = self._evaluate(features)
         prob, novelty = prob.cpu(), novelty.cpu()
         k = max(1, min(top_k, prob.shape[1]))
         top_s, top_i = prob.topk(k, dim=1)
@@ -200,4 +207,6 @@ class Classifier:
                               topk_ids=top_i.numpy().astype(np.int64),
                               topk_scores=top_s.numpy().astype(np.float32),
                               probability=prob.numpy().astype(np.float32),
-                              novelty=novelty.numpy().astype(np.float32))
+                              novelty=novelty.numpy().astype(np.float32),
+                              partial=None if partial is None
+                              else partial.cpu().numpy().astype(np.float32))

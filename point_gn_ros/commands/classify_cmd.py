@@ -41,11 +41,15 @@ def _classify(args: argparse.Namespace) -> int:
         top = [(names[int(i)], float(s))
                for i, s in zip(res.topk_ids[0], res.topk_scores[0], strict=True)]
         extent = (xyz.max(axis=0) - xyz.min(axis=0)).tolist() if len(xyz) else [0.0] * 3
+        # Two-section banks: how likely the gate thinks this is a single-view scan.
+        partial = None if res.partial is None else float(res.partial[0])
         if args.json:
             print(json.dumps({'file': path, 'points': len(xyz), 'extent': extent,
-                              'top': [{'class': n, 'score': s} for n, s in top]}))
+                              'top': [{'class': n, 'score': s} for n, s in top],
+                              'partial': partial}))
         else:
             guesses = ', '.join(f'{n} {s:.2f}' for n, s in top)
             size = ' x '.join(f'{e:.2f}' for e in extent)
-            print(f'{path}: {len(xyz)} points, extent {size}: {guesses}')
+            seen = '' if partial is None else f' (single-view scan: {partial:.2f})'
+            print(f'{path}: {len(xyz)} points, extent {size}{seen}: {guesses}')
     return 0
