@@ -196,3 +196,38 @@ def test_lone_cloud_on_two_threads_is_bit_identical(real_clouds: np.ndarray) -> 
         assert torch.equal(two.encode(xyz[:1]), one.encode(xyz)[:1])  # and batches
     with pytest.raises(ValueError):
         PointGNEncoder(lone_threads=3)
+
+
+def test_simd_build_matches_the_cpu() -> None:
+    # the stage loops are chosen at build time by what -march=native enables: AVX-512
+    # (16 lanes), AVX2 + FMA (8 lanes, CPUs without AVX-512) or portable C
+    _kernels_or_skip()
+    flags = kernels.cpu_flags()
+    if not flags:
+        pytest.skip('no CPU flags in /proc/cpuinfo: cannot say which build should run')
+    if 'avx512f' in flags:
+        expected = 16
+    elif {'avx2', 'fma'} <= flags:
+        expected = 8
+    else:
+        expected = 0
+    assert kernels.simd_width() == expected
+
+
+def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.ndarray,
+                                      naive_real: np.ndarray) -> None:
+    # The AVX2 + FMA kernels (pgn_avx2.c: stage 1 in registers, separable stages, feature
+    # std; AVX2 kNN counting in pgn_geom.c) run only on CPUs with AVX2 and without AVX-512;
+    # there the other oracle tests of this file exercise them too.
+    _kernels_or_skip()
+    if kernels.simd_width() != 8:
+        pytest.skip(f'AVX2 path not built here (simd width {kernels.simd_width()}: '
+                    'the CPU lacks AVX2 + FMA or has AVX-512)')
+    fast = encoder.encode(torch.from_numpy(real_clouds)).numpy()
+    _assert_close(fast, naive_real, 'avx2 modelnet')
+    # stage 1 in registers needs 16 < D <= 32: D = 18 and 30 besides the default 27
+    for init_dim in (18, 30):
+        cfg = EncoderConfig(num_points=256, init_dim=init_dim, stages=2, k=40, sigma=0.4)
+        xyz = torch.from_numpy(np.stack([prepare(c, n=cfg.num_points) for c in real_clouds[:2]]))
+        _assert_close(PointGNEncoder(cfg).encode(xyz).numpy(),
+                      NaiveEncoder(cfg).encode(xyz).numpy(), f'avx2 init_dim {init_dim}')

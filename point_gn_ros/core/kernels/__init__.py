@@ -6,9 +6,13 @@ source text, the compiler, its flags and the CPU, then loads the shared library
 with ctypes. ctypes releases the GIL during calls, so Python threads run
 clouds in parallel. No network, no Python headers, no torch headers.
 
+The stage loops have three builds, chosen at compile time by what -march=native enables:
+AVX-512 (pgn_avx512.c), AVX2 + FMA (pgn_avx2.c, CPUs without AVX-512) and portable C;
+`simd_width()` says which one runs.
+
 pgn_geom.c is compiled without fast-math and with -ffp-contract=off (distances
 must round exactly like the oracle's); the stage files (pgn_stage.c, pgn_avx512.c,
-pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's libmvec);
+pgn_avx2.c, pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's libmvec);
 pgn_peak.c (roofline micro-benchmarks) without. The link step omits -ffast-math so that gcc does
 not add crtfastmath.o, which would flush denormals to zero process-wide.
 """
@@ -32,6 +36,7 @@ _SRC_DIR = Path(__file__).resolve().parent
 _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_stage.c': ['-ffast-math'],
             'pgn_avx512.c': ['-ffast-math'],
+            'pgn_avx2.c': ['-ffast-math'],  # AVX2 + FMA stage loops (CPUs without AVX-512)
             'pgn_encode.c': ['-ffast-math'],
             'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
@@ -186,6 +191,8 @@ def _find_or_build() -> tuple[Path, str]:
 def _declare(lib: ctypes.CDLL) -> None:
     p, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
     lib.pgn_abi_version.restype = ctypes.c_int
+    lib.pgn_simd_width.restype = ctypes.c_int
+    lib.pgn_simd_width.argtypes = []
     lib.pgn_encode.restype = ctypes.c_int
     lib.pgn_encode.argtypes = [p, i64, i64, i64, i64, i64, f32, p, i64, p]
     lib.pgn_encode_lone.restype = ctypes.c_int
@@ -233,6 +240,23 @@ def load() -> ctypes.CDLL | None:
             detail = getattr(exc, 'stderr', '') or ''
             _error = f'{type(exc).__name__}: {exc} {detail}'.strip()
         return _lib
+
+
+def simd_width() -> int:
+    """Lanes of the stage kernels in use: 16 (AVX-512), 8 (AVX2 + FMA), 0 (portable C)."""
+    return int(_require().pgn_simd_width())
+
+
+def cpu_flags() -> set[str]:
+    """The CPU's feature flags from /proc/cpuinfo (empty where there is none)."""
+    try:
+        text = Path('/proc/cpuinfo').read_text()
+    except OSError:
+        return set()
+    for line in text.splitlines():
+        if line.split(':')[0].strip() in ('flags', 'Features'):
+            return set(line.split(':', 1)[1].split())
+    return set()
 
 
 def last_error() -> str | None:

@@ -10,8 +10,12 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) || defined(__AVX2__)
 #include <immintrin.h>
+#endif
+/* The AVX2 + FMA kernels (pgn_avx2.c) run where AVX-512 is not targeted. */
+#if defined(__AVX2__) && defined(__FMA__) && !defined(__AVX512F__)
+#define PGN_AVX2 1
 #endif
 
 #define PAD 16
@@ -66,6 +70,25 @@ static inline __m512 exp2_neg_avx512(__m512 t) {
 }
 #endif
 
+#if defined(PGN_AVX2)
+/* 2^-t for t >= 0, 8 lanes, as exp2_neg_avx512. AVX2 has no scalef: 2^-k is applied by
+ * subtracting k from the exponent field of 2^f (in [0.70, 1.42]), exact while the result
+ * stays normal, so t is clamped at 125 (like exp_fast's e^-87: every value there is below
+ * 2e-38, where the oracle's Gaussians are 0 or denormal anyway). */
+static inline __m256 exp2_neg_avx2(__m256 t) {
+    t = _mm256_min_ps(t, _mm256_set1_ps(125.0f));
+    const __m256 k = _mm256_round_ps(t, _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+    const __m256 f = _mm256_sub_ps(k, t);
+    __m256 p = _mm256_fmadd_ps(_mm256_set1_ps(PGN_EXP2_C5), f, _mm256_set1_ps(PGN_EXP2_C4));
+    p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(PGN_EXP2_C3));
+    p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(PGN_EXP2_C2));
+    p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(PGN_EXP2_C1));
+    p = _mm256_fmadd_ps(p, f, _mm256_set1_ps(PGN_EXP2_C0));
+    const __m256i k23 = _mm256_slli_epi32(_mm256_cvtps_epi32(k), 23);
+    return _mm256_castsi256_ps(_mm256_sub_epi32(_mm256_castps_si256(p), k23));
+}
+#endif
+
 /* pgn_stage.c */
 void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K);
 void pgn_stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, const int32_t *nb,
@@ -87,6 +110,20 @@ void pgn_std_centre_avx512(const float *feat, int64_t Dp, const int32_t *nr, int
 void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
                               float r, float *out, float *mx, float *sm, float *G, sep_t *fx);
+#endif
+
+#if defined(PGN_AVX2)
+/* pgn_avx2.c */
+void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
+                            const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                            float r, const float *ccs, const int32_t *lane_axis, float s,
+                            float *out, float *acc);
+void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
+                            const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                            float r, float *out, float *mx, float *sm, float *G, float *OFF,
+                            int32_t *SRC, sep_t *fx);
+void pgn_std_centre_avx2(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,
+                         const float *cf, float *a1, float *a2);
 #endif
 
 #endif

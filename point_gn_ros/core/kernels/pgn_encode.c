@@ -18,6 +18,17 @@ void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const fl
 
 int pgn_abi_version(void) { return 1; }
 
+/* Lanes of the stage kernels this build runs: 16 (AVX-512), 8 (AVX2 + FMA), 0 (portable C). */
+int pgn_simd_width(void) {
+#if defined(__AVX512F__)
+    return 16;
+#elif defined(PGN_AVX2)
+    return 8;
+#else
+    return 0;
+#endif
+}
+
 #ifdef PGN_PROFILE
 #include <time.h>
 double pgn_prof[16];  /* per-phase thread CPU seconds; slots: bench_cmd.PROFILE_SLOTS */
@@ -76,6 +87,10 @@ typedef struct agg_job {
     const float *ccs;
     const __mmask16 *m1, *m2;
     float sc;
+#elif defined(PGN_AVX2)
+    const float *ccs;
+    const int32_t *lane_axis;
+    float sc;
 #endif
 } agg_job;
 
@@ -90,6 +105,21 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     if (j->d32) {
         pgn_aggregate_d32_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs, j->m1,
                              j->m2, j->sc, out, j->mx[tid]);
+        return;
+    }
+#endif
+#if defined(PGN_AVX2) && !defined(PGN_NO_D32)
+    if (j->d32) {
+        pgn_aggregate_d32_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs,
+                               j->lane_axis, j->sc, out, j->mx[tid]);
+        return;
+    }
+#endif
+#if defined(PGN_AVX2) && !defined(PGN_NO_SEP256)
+    if (j->use_fx) {  /* G, OFF, SRC in the pe buffers, which this path does not use */
+        pgn_aggregate_sep_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
+                               j->sm[tid], j->pe[tid], j->pe[tid] + j->PS,
+                               (int32_t *)(j->pe[tid] + 2 * j->PS), &j->fx[tid]);
         return;
     }
 #endif
@@ -174,13 +204,14 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     const int64_t Dmax = D0 << cfg->stages;  /* widest 2D */
     /* Every stage holds S_i rows of padded(2 D_i) <= N * D0 + S_i * PAD features. */
     const int64_t fsz = N * (D0 + PAD);
-    float *featA = xalloc(sizeof(float) * (size_t)fsz);
-    float *featB = xalloc(sizeof(float) * (size_t)fsz);
+    float *featA = xalloc(sizeof(float) * (size_t)(fsz + 16));
+    float *featB = xalloc(sizeof(float) * (size_t)(fsz + 16));
     float *xyz = xalloc(sizeof(float) * (size_t)N * 3);
     float *cxyz = xalloc(sizeof(float) * (size_t)N * 3);
     float *soa = xalloc(sizeof(float) * (size_t)N * 6);
     float *scratch = xalloc(sizeof(float) * (size_t)N);
-    float *vx = xalloc(sizeof(float) * (size_t)S1 * K1 * 3);
+    /* + 8: the AVX2 stage 1 loads each neighbour's 3 offsets as 4 floats */
+    float *vx = xalloc(sizeof(float) * ((size_t)S1 * K1 * 3 + 8));
     /* one scratch vector / pe buffer: a multiple of 64 bytes, since the vector loops
      * declare their pointers 64-byte aligned */
     const int64_t VS = padded(Dmax + 4 * PAD), PS = VS;
@@ -289,6 +320,13 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
                     f1 += a1; f2 += a2;
                     continue;
                 }
+#elif defined(PGN_AVX2)
+                {
+                    float a1, a2;
+                    pgn_std_centre_avx2(feat, Dp, nr, K, cf, &a1, &a2);
+                    f1 += a1; f2 += a2;
+                    continue;
+                }
 #endif
                 for (int64_t d = 0; d < Dp; ++d) { s1[d] = 0.0f; s2[d] = 0.0f; }
                 int64_t t = 0;
@@ -387,6 +425,20 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             }
             job.d32 = 1;
             job.ccs = ccs; job.m1 = m1; job.m2 = m2; job.sc = sc;
+        }
+#elif defined(PGN_AVX2) && !defined(PGN_NO_D32)
+        const float sc = sqrtf(-q * 1.44269504088896341f);
+        float ccs[64];
+        int32_t lane_axis[64];
+        if (!fx && D > 16 && D <= 32) {
+            /* the same lanes as the AVX-512 path, axis per lane instead of masks */
+            for (int i = 0; i < 64; ++i) {
+                const int64_t ch = i < 32 ? i : D + (i - 32);
+                lane_axis[i] = ch < D2 ? (int32_t)(ch / nc) : 0;
+                ccs[i] = ch < D2 ? cents[ch % nc] * sc : 0.0f;
+            }
+            job.d32 = 1;
+            job.ccs = ccs; job.lane_axis = lane_axis; job.sc = sc;
         }
 #endif
         par_run(par, &job);

@@ -8,7 +8,7 @@
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) || defined(__AVX2__)
 #include <immintrin.h>
 #endif
 
@@ -180,10 +180,32 @@ static inline int64_t count_le(const float *d, int64_t n, float tau) {
         c += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d + i), vt, _CMP_LE_OQ));
         c += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d + i + 16), vt, _CMP_LE_OQ));
     }
+#elif defined(__AVX2__)
+    /* AVX2: the sign bits of the compare as a byte mask, popcounted */
+    const __m256 vt = _mm256_set1_ps(tau);
+    for (; i + 32 <= n; i += 32) {
+        const int m0 = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_loadu_ps(d + i), vt, _CMP_LE_OQ));
+        const int m1 = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_loadu_ps(d + i + 8), vt, _CMP_LE_OQ));
+        const int m2 = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_loadu_ps(d + i + 16), vt, _CMP_LE_OQ));
+        const int m3 = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_loadu_ps(d + i + 24), vt, _CMP_LE_OQ));
+        c += __builtin_popcount((unsigned)(m0 | m1 << 8 | m2 << 16 | m3 << 24));
+    }
 #endif
     for (; i < n; ++i) c += d[i] <= tau;
     return c;
 }
+
+#if defined(__AVX2__) && !defined(__AVX512F__)
+/* compress_lut[m]: the set lanes of the 8-bit mask m, in order, then zeros (one byte each) */
+static uint8_t compress_lut[256][8];
+__attribute__((constructor)) static void init_compress_lut(void) {  /* at library load */
+    for (int m = 0; m < 256; ++m) {
+        int c = 0;
+        for (int l = 0; l < 8; ++l) if (m >> l & 1) compress_lut[m][c++] = (uint8_t)l;
+        for (; c < 8; ++c) compress_lut[m][c] = 0;
+    }
+}
+#endif
 
 /* Indices i with d[i] <= lo into a (returns count); lo < d[i] <= hi into b (*nb). */
 static int64_t split3(const float *d, int64_t n, float lo, float hi, int32_t *a, int32_t *b,
@@ -204,6 +226,26 @@ static int64_t split3(const float *d, int64_t n, float lo, float hi, int32_t *a,
         ca += __builtin_popcount(ma);
         cb += __builtin_popcount(mb);
         idx = _mm512_add_epi32(idx, step);
+    }
+#elif defined(__AVX2__)
+    /* AVX2 has no compress: a table of lane permutations for each 8-bit mask moves the
+     * selected indices to the front, then one plain 8-lane store */
+    const __m256i step = _mm256_set1_epi32(8);
+    __m256i idx = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    const __m256 vlo = _mm256_set1_ps(lo), vhi = _mm256_set1_ps(hi);
+    for (; i + 8 <= n; i += 8) {
+        const __m256 v = _mm256_loadu_ps(d + i);
+        const unsigned ma = (unsigned)_mm256_movemask_ps(_mm256_cmp_ps(v, vlo, _CMP_LE_OQ));
+        const unsigned mb = (unsigned)_mm256_movemask_ps(_mm256_cmp_ps(v, vhi, _CMP_LE_OQ)) & ~ma;
+        _mm256_storeu_si256((__m256i *)(a + ca), _mm256_permutevar8x32_epi32(
+            idx, _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)compress_lut[ma]))));
+        ca += __builtin_popcount(ma);
+        if (mb) {  /* the middle band is a few points: usually empty */
+            _mm256_storeu_si256((__m256i *)(b + cb), _mm256_permutevar8x32_epi32(
+                idx, _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)compress_lut[mb]))));
+            cb += __builtin_popcount(mb);
+        }
+        idx = _mm256_add_epi32(idx, step);
     }
 #endif
     for (; i < n; ++i) {

@@ -52,6 +52,22 @@ void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K) {
             _mm512_mask_storeu_ps(A + i, k, exp2_neg_avx512(t));
         }
         continue;
+#elif defined(PGN_AVX2)
+        /* 8 lanes: the same 2^-t (exp2_neg_avx2 clamps t at 125, about 87 log2 e) */
+        const __m256 vb = _mm256_set1_ps(bm), vs = _mm256_set1_ps(-q * 1.44269504088896341f);
+        int64_t i = 0;
+        for (; i + 8 <= nta; i += 8) {
+            const __m256 u = _mm256_sub_ps(vb, _mm256_loadu_ps(w + i));
+            _mm256_storeu_ps(A + i, exp2_neg_avx2(_mm256_mul_ps(_mm256_mul_ps(u, u), vs)));
+        }
+        if (i < nta) {  /* tail through a padded copy */
+            float tw[8] = {0}, ta[8];
+            for (int64_t l = i; l < nta; ++l) tw[l - i] = w[l];
+            const __m256 u = _mm256_sub_ps(vb, _mm256_loadu_ps(tw));
+            _mm256_storeu_ps(ta, exp2_neg_avx2(_mm256_mul_ps(_mm256_mul_ps(u, u), vs)));
+            for (int64_t l = i; l < nta; ++l) A[l] = ta[l - i];
+        }
+        continue;
 #endif
 #pragma omp simd
         for (int64_t i = 0; i < nta; ++i) {
