@@ -8,9 +8,11 @@ Pseudo-enrollment on the default bank's own objects (no test object is read):
   scans each (evenly spread azimuths) enrolled as new classes '<category>_object_<i>' through
   `add_examples` with the study's refit policy, `--query-views` other scans queried (other
   seeds: other azimuths, noise, dropout);
-- existing classes: the other objects' complete entries and bank scans (raw features from the
-  bank build's feature cache, `make default-bank CACHE=...`), classified before and after the
-  enrollment; the drop counts right-before-wrong-after minus the reverse.
+- existing classes: the other objects' complete entries and scans (raw features from the bank
+  build's feature cache, `make default-bank CACHE=...`: the bank's own 4 scans of each; or, with
+  `--other-scans random`, one new scan from a random viewpoint as enroll_study's existing-class
+  scans), classified before and after the enrollment; the drop counts right-before-wrong-after
+  minus the reverse.
 For each beta of the grid (0 = today's vote) the same enrolled banks are classified with the
 vote prior on the enrolled classes. The rule picks the largest instance accuracy whose
 existing-class drop stays <= --max-drop points on complete objects AND scans.
@@ -36,7 +38,8 @@ from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, refit
 from point_gn_ros.bank.vote_prior import META_KEY
 from point_gn_ros.core.config import ENCODER_VERSION
-from point_gn_ros.core.views import SIMULATOR_VERSION, simulate_views
+from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
+                                     simulate_views)
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.recognizer import encode_clouds, make_encoder
 
@@ -109,6 +112,20 @@ def scans(train, inst: list[int], query_views: int, cache: str, encoder  # noqa:
     return enroll, query
 
 
+def random_scans(train, objs: np.ndarray, cache: str, encoder) -> torch.Tensor:  # noqa: ANN001
+    """One scan of each object from a random viewpoint, seeded as enroll_study's (seed [7, i])."""
+    key = hashlib.sha1(repr((encoder.cfg.to_dict(), ENCODER_VERSION, SIMULATOR_VERSION,
+                             'random', [int(o) for o in objs])).encode()).hexdigest()[:16]
+    path = Path(cache) / f'instance_cv_{key}.npy'
+    if path.is_file():
+        return torch.from_numpy(np.load(path))
+    cfg = VIEW_PROTOCOLS['hpr'][0]
+    feats = encode_clouds([simulate_view(train[int(o)][0], np.random.default_rng([7, int(o)]),
+                                         cfg).points for o in objs], encoder)
+    np.save(path, feats.numpy())
+    return feats
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--cache', required=True)
@@ -120,6 +137,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries')
     p.add_argument('--scope', choices=('enrolled', 'all'), default='enrolled')
     p.add_argument('--betas', type=float, nargs='+', default=list(BETAS))
+    p.add_argument('--other-scans', choices=('bank', 'random'), default='bank',
+                   help="existing-class scans: the bank's own 4 scans of each held-out object, "
+                        "or one scan from a random viewpoint (enroll_study's existing-class "
+                        'protocol, seed [7, object])')
     p.add_argument('--json', default=None)
     args = p.parse_args(argv)
 
@@ -142,8 +163,12 @@ def main(argv: list[str] | None = None) -> int:
         keep[inst] = keep[others] = False
         cur = refitted(subset(bf, keep), policy)
         q_full = torch.from_numpy(np.asarray(raw[5 * others]))
-        q_scan = torch.from_numpy(np.concatenate([raw[5 * o + 1:5 * o + 5] for o in others]))
-        t_full, t_scan = labels[others], np.repeat(labels[others], 4)
+        if args.other_scans == 'bank':
+            q_scan = torch.from_numpy(np.concatenate([raw[5 * o + 1:5 * o + 5] for o in others]))
+            t_scan = np.repeat(labels[others], 4)
+        else:
+            q_scan, t_scan = random_scans(train, others, args.cache, encoder), labels[others]
+        t_full = labels[others]
         right0 = {'complete': predict(cur, q_full) == t_full,
                   'scan': predict(cur, q_scan) == t_scan}
         enroll, query = scans(train, inst, args.query_views, args.cache, encoder)
@@ -171,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
           and table[str(b)]['drop_scan_points'] <= args.max_drop]
     chosen = max(ok, key=lambda b: (table[str(b)]['instance_accuracy'], -b)) if ok else 0.0
     out = {'rounds': args.rounds, 'others': args.others, 'scope': args.scope,
+           'other_scans': args.other_scans,
            'lda_prior': args.lda_prior, 'max_drop': args.max_drop, 'table': table,
            'chosen_beta': chosen}
     print(json.dumps(out, indent=2))
