@@ -11,7 +11,7 @@ answered / answered twice = stream messages answered (each must be exactly once)
 errors from the node's diagnostics.
 
 Run: python scripts/enroll_latency.py [--bank PATH] [--rate 30] [--examples 20] [--seconds 6]
-     [--search auto|exact|indexed] [--augment d4]
+     [--search auto|exact|indexed] [--augment d4] [--vote-prior BETA] [--lda-prior balanced]
 (needs the shared ModelNet40 data; ROS_DOMAIN_ID honoured via test/node_testing.py).
 """
 
@@ -43,6 +43,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="the node's bank search parameter")
     p.add_argument('--augment', default='none', choices=('none', 'mirror', 'rot4', 'd4'),
                    help='node parameter enroll_augment (frames stored per example)')
+    p.add_argument('--vote-prior', type=float, default=0.0,
+                   help='node parameter enroll_vote_prior (bank/vote_prior.py)')
+    p.add_argument('--lda-prior', default='entries', choices=('entries', 'balanced'),
+                   help='node parameter enroll_lda_prior')
     p.add_argument('--json', default=None)
     args = p.parse_args(argv)
 
@@ -60,7 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     node = NodeProcess({'bank_path': args.bank, 'input_topics': ['objects'],
                         'qos_reliability': 'reliable', 'qos_depth': 200, 'queue_size': 400,
                         'enroll_class': 'my_sofa', 'search': args.search,
-                        'enroll_augment': args.augment}, log)
+                        'enroll_augment': args.augment,
+                        'enroll_vote_prior': float(args.vote_prior),
+                        'enroll_lda_prior': args.lda_prior}, log)
     h = Harness('enroll_latency')
     try:
         pub = h.node.create_publisher(PointCloud2, 'objects', reliable_qos(400))

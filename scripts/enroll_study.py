@@ -19,6 +19,7 @@ Nothing here is tuned on the test split: the bank's knobs were chosen by CV on t
 
 Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR]
      [--augment none|mirror|rot4|d4] [--view-protocol hpr|zbuffer] [--lda-prior balanced]
+     [--vote-prior BETA]
      [--cv-augment]
 """
 
@@ -60,6 +61,9 @@ def main(argv: list[str] | None = None) -> int:
                    help='frames each enrolled scan is stored in (core/augment.py)')
     p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries',
                    help="LDA class priors after each enrollment's refit (RefitPolicy)")
+    p.add_argument('--vote-prior', type=float, default=0.0, metavar='BETA',
+                   help="class-size prior exponent of the enrolled classes' kernel vote "
+                        '(RefitPolicy.vote_prior; chosen by scripts/instance_cv.py)')
     p.add_argument('--cv-augment', action='store_true',
                    help='also choose --augment by leave-one-scan-out CV on the enrolled scans '
                         'alone (no query scan read): accuracy per option')
@@ -117,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
             arrays[f'enroll_{c}'] = encode(enrollment_scans(i), args.augment)
     print(f'encoded {len(rest)} test objects twice in {time.perf_counter() - t0:.0f} s',
           file=sys.stderr)
-    policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior)
+    policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior, vote_prior=args.vote_prior)
     cv = None
     if args.cv_augment:
         scans = {f'{c}_object_{i}': enrollment_scans(i) for c, i in chosen.items()}
@@ -153,10 +157,16 @@ def main(argv: list[str] | None = None) -> int:
                                  for k, p in zip(np.repeat(np.arange(10), args.query_views),
                                                  q_pred, strict=True)]))
     after = {'complete': accuracy(f_full, truth), 'single_view': accuracy(f_view, truth)}
+    # Existing-class queries now called one of the new classes (where the drop goes).
+    new_ids = np.unique(q_true)
+    taken = {k: {snap.class_names[c]: int(n) for c, n in zip(*np.unique(
+        pred[np.isin(pred, new_ids)], return_counts=True), strict=True)}
+        for k, pred in (('complete', snap.model.classifier.classify(f_full).labels),
+                        ('single_view', snap.model.classifier.classify(f_view).labels))}
     out = {
         'bank': str(bf.bank.path), 'bank_version': snap.version, 'gamma': snap.bank.gamma,
         'augment': args.augment, 'view_protocol': args.view_protocol,
-        'lda_prior': args.lda_prior,
+        'lda_prior': args.lda_prior, 'vote_prior': args.vote_prior,
         'refit': snap.bank.meta['refit'], 'objects': chosen,
         'new_objects_accuracy': float((q_pred == q_true).mean()),
         'new_objects_misses_to_another_new_class': float(
@@ -166,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         'new_objects_right_category_or_instance': as_category,
         'existing_before': before, 'existing_after': after,
         'existing_drop_points': {k: 100 * (before[k] - after[k]) for k in before},
+        'existing_called_new_class': taken,
         'enroll_seconds_per_object_max': max(enroll_s),
         'near_duplicates': dups,
     }

@@ -16,6 +16,10 @@ both sections and mixes them with the gate's p = probability that the query is a
 A plain-vote bank (format 1, or one CV chose the vote for) has probability = each
 class's share of the kernel votes, as before.
 
+Classes enrolled under `RefitPolicy.vote_prior` > 0 (listed in a section's meta
+'vote_prior') get a class-size prior on their vote (bank/vote_prior.py): a per-class bias
+on the log vote, the same for every search and batch. Banks without it: no bias at all.
+
 Search (`search=`): 'exact' compares every query with every bank entry (torch);
 'indexed' uses bank/search.py's two-stage search (int8 coarse scan, exact rescoring of
 the best candidates, each query alone), built once per Classifier; 'auto' (default)
@@ -32,6 +36,7 @@ import torch
 
 from point_gn_ros.bank.head import ExactSearch, VoteSearch
 from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.vote_prior import vote_log_bias
 
 UNKNOWN = -1
 SEARCHES = ('auto', 'exact', 'indexed')
@@ -151,6 +156,8 @@ class Classifier:
                                           index_min_entries)
         self.search = make_search(self.search_kind, self.features, self.labels,
                                   bank.num_classes)
+        # Opt-in class-size prior of enrolled classes (bank/vote_prior.py); None: plain vote.
+        self.vote_bias = vote_log_bias(bank.meta, bank.class_names, bank.labels)
         # A sectioned bank: the scan section has its own classifier, mixed by the gate.
         self.views = None if bank.views is None else Classifier(
             bank.views, device, gamma=None, search=search, index_min_entries=index_min_entries)
@@ -176,7 +183,8 @@ class Classifier:
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """-> probability (B, C), novelty (B,), gate's p(scan) (B,) or None."""
         features = features.to(self.device)
-        prob, novelty = self.head.evaluate_with(self.transform(features), self.search)
+        prob, novelty = self.head.evaluate_with(self.transform(features), self.search,
+                                                self.vote_bias)
         if self.views is None or self.gate is None:
             return prob, novelty, None
         p_scan = self.gate.scan_probability(features)

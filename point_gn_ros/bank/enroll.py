@@ -14,6 +14,8 @@ Metadata added (JSON, in the bank file):
                  (+ examples, augment when an add stored each example in k frames)
   augmented_entries  {class: entries beyond one per example} (augmented adds only; the
                  examples of a class = its entries minus this, see `example_counts`)
+  vote_prior     {beta, classes}: the enrolled classes whose kernel vote gets a class-size
+                 prior (RefitPolicy.vote_prior > 0 when they were created; bank/vote_prior.py)
   refit          how gamma / calibration were last decided {version, gamma, calibration, ...}
 """
 
@@ -33,6 +35,7 @@ import torch
 from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, ScatterStats,
                                      active_view, example_counts, refit, vote_to_z)
 from point_gn_ros.bank.store import FeatureBank, to_stored
+from point_gn_ros.bank.vote_prior import is_listed, with_listed, without
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.errors import PointGNError
 
@@ -219,6 +222,8 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
     extra = {} if k == 1 else {'examples': len(new) // k, 'augment': augment}
     meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups,
                 **extra)
+    if policy.vote_prior > 0 and (new_class or is_listed(meta, class_name)):
+        meta = with_listed(meta, policy.vote_prior, class_name)   # bank/vote_prior.py
     if k > 1:
         aug = dict(meta.get('augmented_entries', {}))
         aug[class_name] = int(aug.get(class_name, 0)) + len(new) - len(new) // k
@@ -254,7 +259,7 @@ def remove_class(bf: BankFile, class_name: str, source: str = 'api',
     labels = labels - (labels > cid).long()
     names = [n for n in bank.class_names if n != class_name]
     removed = int((~keep).sum())
-    meta = _log(bank, 'remove', class_name, removed, source, when)
+    meta = without(_log(bank, 'remove', class_name, removed, source, when), class_name)
     if class_name in meta.get('augmented_entries', {}):
         meta['augmented_entries'] = {c: n for c, n in meta['augmented_entries'].items()
                                      if c != class_name}

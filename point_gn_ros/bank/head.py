@@ -82,15 +82,19 @@ class Head:
         """
         return self.evaluate_with(z, ExactSearch(bank_u, bank_labels, num_classes))
 
-    def evaluate_with(self, z: torch.Tensor, search: 'VoteSearch'
+    def evaluate_with(self, z: torch.Tensor, search: 'VoteSearch',
+                      vote_bias: torch.Tensor | None = None
                       ) -> tuple[torch.Tensor, torch.Tensor]:
         """`evaluate` with the kernel vote from `search` (exact or bank/search.py's index).
 
         z: (B, d) transformed queries -> probability (B, C), novelty (B,), float32.
+        vote_bias: optional (C,) added to the log vote (bank/vote_prior.py); None: none.
         """
         if z.shape[0] == 0:
             return torch.zeros(0, search.num_classes), torch.zeros(0)
         fused, best = search.log_votes(self.vote_space(z), self.gamma)
+        if vote_bias is not None:    # a class-size prior on the vote (-inf stays -inf)
+            fused = fused + vote_bias.to(fused.device)
         lda = self.lda_log_probs(z)
         if lda is not None:
             fused = fused + self.fusion_weight * lda

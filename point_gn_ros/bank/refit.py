@@ -34,6 +34,9 @@ _ABSENT_BIAS = -1e4
 
 GammaPolicy = Literal['keep', 'cv', 'auto']
 LdaPrior = Literal['entries', 'balanced']
+# Largest class-size prior exponent accepted (beyond 2 an enrolled class takes over its
+# category's queries: scripts/instance_cv.py).
+MAX_VOTE_PRIOR = 4.0
 CalibrationPolicy = Literal['keep', 'recalibrate', 'auto']
 
 
@@ -125,6 +128,9 @@ class RefitPolicy:
     the bank's entries, as built) or 'balanced' (equal priors: a 5-example class is not
     penalised against 250-example ones; class sizes reflect how many examples were
     collected, not how often a class is seen).
+    vote_prior: exponent beta of the kernel vote's class-size prior for classes this policy
+    creates by enrollment (bank/vote_prior.py; recorded in the bank): their vote is scaled
+    by (mean built-class entries / their entries)^beta. 0 (default): the plain vote, as built.
     """
 
     gamma: GammaPolicy = 'auto'
@@ -134,8 +140,12 @@ class RefitPolicy:
     cv_max_entries: int = AUTO_CV_MAX_ENTRIES
     duplicate_cosine: float = DUPLICATE_COSINE
     lda_prior: LdaPrior = 'entries'
+    vote_prior: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.vote_prior) and 0.0 <= self.vote_prior <= MAX_VOTE_PRIOR):
+            raise ValueError(f'vote_prior must be in [0, {MAX_VOTE_PRIOR:g}], got '
+                             f'{self.vote_prior!r}')
         if self.lda_prior not in ('entries', 'balanced'):
             raise ValueError(f'lda_prior must be entries or balanced, got {self.lda_prior!r}')
         if self.gamma not in ('keep', 'cv', 'auto'):
@@ -295,7 +305,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                               'refitted in closed form' + (', knobs by CV' if sel else
                                                            ', knobs kept')),
                      'calibration_reason': cal_reason, 'min_examples': policy.min_examples,
-                     'lda_prior': policy.lda_prior,
+                     'lda_prior': policy.lda_prior, 'vote_prior': policy.vote_prior,
                      'predicted_classes': int(len(present))}
     return replace(bank, features=features, gamma=gamma, meta=meta, head=new_head), rewhiten
 

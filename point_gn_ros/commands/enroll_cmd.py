@@ -37,6 +37,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="store each example in these frames (core/augment.py): 'd4' = the 8 "
                         'frames the yaw alignment confuses on partial scans (8 entries per '
                         "example); default 'none'")
+    a.add_argument('--vote-prior', type=_beta, default=0.0, metavar='BETA',
+                   help='class-size prior exponent of the kernel vote for a class this add '
+                        'creates (bank/vote_prior.py): its vote is scaled by (mean built-class '
+                        'entries / its entries)^BETA, so a few-example instance is not '
+                        'outvoted by its category; 0 = plain vote (default), 0-4')
     _common(a)
     a.set_defaults(func=_add)
 
@@ -75,7 +80,18 @@ def _policy(args: argparse.Namespace):
     from point_gn_ros.bank.enroll import RefitPolicy
     return RefitPolicy(gamma=args.gamma, calibration=args.calibration,
                        min_examples=args.min_examples, folds=args.folds,
-                       lda_prior=args.lda_prior)
+                       lda_prior=args.lda_prior, vote_prior=getattr(args, 'vote_prior', 0.0))
+
+
+def _beta(text: str) -> float:
+    from point_gn_ros.bank.refit import MAX_VOTE_PRIOR
+    try:
+        beta = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not 0.0 <= beta <= MAX_VOTE_PRIOR:
+        raise argparse.ArgumentTypeError(f'{beta:g} must be in [0, {MAX_VOTE_PRIOR:g}]')
+    return beta
 
 
 def _read_inputs(args: argparse.Namespace) -> tuple[list, str]:

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.lifecycle import ManagedEntity, TransitionCallbackReturn
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -46,6 +46,7 @@ from std_srvs.srv import Trigger
 
 from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
 from point_gn_ros.bank.live import LiveBank, Snapshot
+from point_gn_ros.bank.refit import MAX_VOTE_PRIOR
 from point_gn_ros.core.augment import AUGMENTS
 from point_gn_ros.errors import DecodeError, PointGNError
 from point_gn_ros.node.enroll_engine import EnrollEngine
@@ -77,6 +78,14 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     'enroll_lda_prior': ('entries', "LDA class priors after a change: 'entries' (class shares "
                                     "of the bank) or 'balanced' (equal priors).",
                          {'additional_constraints': "one of 'entries', 'balanced'"}),
+    'enroll_vote_prior': (0.0, 'Class-size prior exponent beta of the kernel vote for classes '
+                               'created by enrollment (bank/vote_prior.py): their vote is '
+                               'scaled by (mean built-class entries / their entries)^beta; '
+                               '0 = the plain vote (default). Train CV for instances taught '
+                               'from 5 scans: 1.2 with enroll_lda_prior balanced (README, '
+                               'issue 12).',
+                          {'floating_point_range': [FloatingPointRange(
+                              from_value=0.0, to_value=MAX_VOTE_PRIOR, step=0.0)]}),
     'enroll_augment': ('none', "Frames each example is stored in (core/augment.py): 'none', "
                                "'mirror', 'rot4' or 'd4' (8 entries per example: the frames "
                                'the yaw alignment confuses on partial scans).',
@@ -131,7 +140,7 @@ class Enrollment(ManagedEntity):
             log.error(f'parameter enroll_lda_prior={prior!r} must be entries or balanced')
             return TransitionCallbackReturn.FAILURE
         policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'],
-                             lda_prior=prior)
+                             lda_prior=prior, vote_prior=float(self.values['enroll_vote_prior']))
         try:
             self.live = LiveBank(_bank_file(node.recognizer.bank), self._make_model, policy)
             node.replace_recognizer(self.live.current().model)

@@ -1,0 +1,209 @@
+"""Choose the enrolled-class vote prior (bank/vote_prior.py) by CV on the TRAIN split only.
+
+Pseudo-enrollment on the default bank's own objects (no test object is read):
+- each round takes, per ModelNet10 category, one train object as a pseudo "new instance" and
+  `--others` further random train objects as existing-class queries; all of them are taken
+  out of both sections of the bank (their complete entry and their 4 HPR scans);
+- the pseudo-instances go through scripts/enroll_study.py's protocol on TRAIN objects: 5 HPR
+  scans each (evenly spread azimuths) enrolled as new classes '<category>_object_<i>' through
+  `add_examples` with the study's refit policy, `--query-views` other scans queried (other
+  seeds: other azimuths, noise, dropout);
+- existing classes: the other objects' complete entries and scans (raw features from the bank
+  build's feature cache, `make default-bank CACHE=...`: the bank's own 4 scans of each; or, with
+  `--other-scans random`, one new scan from a random viewpoint as enroll_study's existing-class
+  scans), classified before and after the enrollment; the drop counts right-before-wrong-after
+  minus the reverse.
+For each beta of the grid (0 = today's vote) the same enrolled banks are classified with the
+vote prior on the enrolled classes. The rule picks the largest instance accuracy whose
+existing-class drop stays <= --max-drop points on complete objects AND scans.
+Both sections' LDA is refitted without the held-out objects before anything is measured (as
+an enrollment refits it); the gate and the other knobs keep their build values.
+
+Run: python scripts/instance_cv.py --cache /work/cache [--rounds 4] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+from dataclasses import replace
+import json
+from pathlib import Path
+import sys
+
+import numpy as np
+import torch
+
+from point_gn_ros.bank.classifier import Classifier
+from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, refit
+from point_gn_ros.bank.vote_prior import META_KEY
+from point_gn_ros.core.config import ENCODER_VERSION
+from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
+                                     simulate_views)
+from point_gn_ros.datasets import open_dataset
+from point_gn_ros.recognizer import encode_clouds, make_encoder
+
+MODELNET = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'modelnet40_1024'
+MODELNET10 = ('bathtub', 'bed', 'chair', 'desk', 'dresser', 'monitor', 'night_stand', 'sofa',
+              'table', 'toilet')
+# The bank build's cached raw features (complete, then 4 scans, per train object).
+FEATS = 'feats_2da2cc2a68e7cbc7.npy'
+BETAS = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def subset(bf: BankFile, keep_obj: np.ndarray) -> BankFile:
+    """The bank without some train objects: keep_obj (S,) bool over the source objects."""
+    vk = np.repeat(keep_obj, 4)
+    b, v = bf.bank, bf.views.bank
+    views = replace(v, features=v.features[torch.from_numpy(vk)],
+                    labels=v.labels[torch.from_numpy(vk)])
+    main = replace(b, features=b.features[torch.from_numpy(keep_obj)],
+                   labels=b.labels[torch.from_numpy(keep_obj)], views=views)
+    return BankFile(main, bf.stored[keep_obj], views=BankFile(views, bf.views.stored[vk]))
+
+
+def refitted(bf: BankFile, policy: RefitPolicy) -> BankFile:
+    """Both sections refitted as an enrollment would (the LDA without the removed objects).
+
+    The clean 'before': the built LDA still holds the held-out objects' own rows.
+    """
+    v, moved_v = refit(bf.views.bank, policy)
+    m, moved_m = refit(bf.bank, policy)
+    assert not (moved_v or moved_m), 'kept knobs never move the stored rows'
+    return BankFile(replace(m, views=v), bf.stored, views=BankFile(v, bf.views.stored)
+                    ).with_stats()
+
+
+def with_beta(bf: BankFile, beta: float, names: list[str], scope: str) -> BankFile:
+    """Both sections with the vote prior `beta` on `names` ('enrolled') or every class."""
+    def put(bank):  # noqa: ANN001, ANN202
+        listed = names if scope == 'enrolled' else list(bank.class_names)
+        return replace(bank, meta={**bank.meta, META_KEY: {'beta': beta, 'classes': listed}})
+    views = put(bf.bank.views)
+    return BankFile(replace(put(bf.bank), views=views), bf.stored,
+                    views=BankFile(views, bf.views.stored))
+
+
+def predict(bf: BankFile, feats: torch.Tensor) -> np.ndarray:
+    return Classifier(bf.bank, search='exact').classify(feats).labels
+
+
+def scans(train, inst: list[int], query_views: int, cache: str, encoder  # noqa: ANN001
+          ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Encoded 5 enrollment scans and `query_views` query scans of each train object in inst.
+
+    Seeds as scripts/enroll_study.py's (object i: enrollment seed i, queries seed 1000 + i).
+    """
+    key = hashlib.sha1(repr((encoder.cfg.to_dict(), ENCODER_VERSION, SIMULATOR_VERSION, inst,
+                             query_views)).encode()).hexdigest()[:16]
+    path = Path(cache) / f'instance_cv_{key}.npz'
+    if path.is_file():
+        with np.load(path) as z:
+            return ([torch.from_numpy(z[f'e{o}']) for o in inst],
+                    [torch.from_numpy(z[f'q{o}']) for o in inst])
+    enroll, query = [], []
+    for o in inst:
+        obj = train[o][0]
+        enroll.append(encode_clouds([v.points for v in simulate_views(obj, 5, seed=o)], encoder))
+        query.append(encode_clouds([v.points for v in simulate_views(
+            obj, query_views, seed=1000 + o)], encoder))
+    np.savez(path, **{f'e{o}': e.numpy() for o, e in zip(inst, enroll, strict=True)},
+             **{f'q{o}': q.numpy() for o, q in zip(inst, query, strict=True)})
+    return enroll, query
+
+
+def random_scans(train, objs: np.ndarray, cache: str, encoder) -> torch.Tensor:  # noqa: ANN001
+    """One scan of each object from a random viewpoint, seeded as enroll_study's (seed [7, i])."""
+    key = hashlib.sha1(repr((encoder.cfg.to_dict(), ENCODER_VERSION, SIMULATOR_VERSION,
+                             'random', [int(o) for o in objs])).encode()).hexdigest()[:16]
+    path = Path(cache) / f'instance_cv_{key}.npy'
+    if path.is_file():
+        return torch.from_numpy(np.load(path))
+    cfg = VIEW_PROTOCOLS['hpr'][0]
+    feats = encode_clouds([simulate_view(train[int(o)][0], np.random.default_rng([7, int(o)]),
+                                         cfg).points for o in objs], encoder)
+    np.save(path, feats.numpy())
+    return feats
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    p.add_argument('--cache', required=True)
+    p.add_argument('--data', default=str(MODELNET))
+    p.add_argument('--rounds', type=int, default=4)
+    p.add_argument('--query-views', type=int, default=10)
+    p.add_argument('--others', type=int, default=150)
+    p.add_argument('--max-drop', type=float, default=1.0)
+    p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries')
+    p.add_argument('--scope', choices=('enrolled', 'all'), default='enrolled')
+    p.add_argument('--betas', type=float, nargs='+', default=list(BETAS))
+    p.add_argument('--other-scans', choices=('bank', 'random'), default='bank',
+                   help="existing-class scans: the bank's own 4 scans of each held-out object, "
+                        "or one scan from a random viewpoint (enroll_study's existing-class "
+                        'protocol, seed [7, object])')
+    p.add_argument('--json', default=None)
+    args = p.parse_args(argv)
+
+    bf = BankFile.load()
+    train = open_dataset(args.data, split='train')
+    labels = np.asarray(train.labels)
+    raw = np.load(Path(args.cache) / FEATS, mmap_mode='r')            # (5 S, D)
+    n_obj = len(labels)
+    assert raw.shape[0] == 5 * n_obj and np.array_equal(
+        bf.views.bank.labels.numpy(), np.repeat(labels, 4)), 'feature cache / bank mismatch'
+    policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior)
+    encoder = make_encoder(bf.bank.config)
+    res = {b: {'inst': [], 'complete': [], 'scan': []} for b in args.betas}
+    for r in range(args.rounds):
+        rng = np.random.default_rng(100 + r)
+        inst = [int(rng.choice(np.flatnonzero(labels == train.class_names.index(c))))
+                for c in MODELNET10]
+        others = rng.choice(np.setdiff1d(np.arange(n_obj), inst), args.others, replace=False)
+        keep = np.ones(n_obj, dtype=bool)
+        keep[inst] = keep[others] = False
+        cur = refitted(subset(bf, keep), policy)
+        q_full = torch.from_numpy(np.asarray(raw[5 * others]))
+        if args.other_scans == 'bank':
+            q_scan = torch.from_numpy(np.concatenate([raw[5 * o + 1:5 * o + 5] for o in others]))
+            t_scan = np.repeat(labels[others], 4)
+        else:
+            q_scan, t_scan = random_scans(train, others, args.cache, encoder), labels[others]
+        t_full = labels[others]
+        right0 = {'complete': predict(cur, q_full) == t_full,
+                  'scan': predict(cur, q_scan) == t_scan}
+        enroll, query = scans(train, inst, args.query_views, args.cache, encoder)
+        names, q_ids = [], []
+        for c, o, f in zip(MODELNET10, inst, enroll, strict=True):
+            name = f'{c}_object_{o}'
+            cur = add_examples(cur, f, name, source='instance_cv', policy=policy).file
+            names.append(name)
+            q_ids += [cur.bank.class_names.index(name)] * args.query_views
+        q_inst, q_ids = torch.cat(query), np.asarray(q_ids)
+        for b in args.betas:
+            bb = with_beta(cur, b, names, args.scope)
+            res[b]['inst'].append(float((predict(bb, q_inst) == q_ids).mean()))
+            for kind, q, t in (('complete', q_full, t_full), ('scan', q_scan, t_scan)):
+                now = predict(bb, q) == t
+                res[b][kind].append(100 * float((right0[kind] & ~now).mean()
+                                                - (~right0[kind] & now).mean()))
+        print(f'round {r}: ' + ', '.join(
+            f'b={b:g} inst {res[b]["inst"][-1]:.3f} drop {res[b]["complete"][-1]:.2f}/'
+            f'{res[b]["scan"][-1]:.2f}' for b in args.betas), file=sys.stderr)
+    table = {str(b): {'instance_accuracy': float(np.mean(v['inst'])),
+                      'drop_complete_points': float(np.mean(v['complete'])),
+                      'drop_scan_points': float(np.mean(v['scan']))} for b, v in res.items()}
+    ok = [b for b in args.betas if table[str(b)]['drop_complete_points'] <= args.max_drop
+          and table[str(b)]['drop_scan_points'] <= args.max_drop]
+    chosen = max(ok, key=lambda b: (table[str(b)]['instance_accuracy'], -b)) if ok else 0.0
+    out = {'rounds': args.rounds, 'others': args.others, 'scope': args.scope,
+           'other_scans': args.other_scans,
+           'lda_prior': args.lda_prior, 'max_drop': args.max_drop, 'table': table,
+           'chosen_beta': chosen}
+    print(json.dumps(out, indent=2))
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=2) + '\n')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
