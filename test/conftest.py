@@ -81,6 +81,15 @@ def write_npy_tree(root: Path, classes: tuple[str, ...], per_class: dict[str, in
     return root
 
 
+TREE_CLASSES = ('chair', 'lamp', 'airplane')
+
+
+@pytest.fixture(scope='module')
+def three_class_tree(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder tree of real ModelNet40 objects: train/test x 3 classes (TREE_CLASSES), .npy."""
+    return write_npy_tree(tmp_path_factory.mktemp('tree'), TREE_CLASSES, {'train': 6, 'test': 4})
+
+
 class ArrayDataset:
     """In-memory dataset with the Dataset contract (for tests and tiny banks)."""
 

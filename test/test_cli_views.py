@@ -3,20 +3,15 @@
 import json
 from pathlib import Path
 
-from conftest import write_npy_tree
 import numpy as np
 import pytest
 
 from point_gn_ros.cli import main
 from point_gn_ros.datasets import write_pcd
 
-CLASSES = ('chair', 'lamp', 'airplane')
-
-
 @pytest.fixture(scope='module')
-def tree(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A folder tree of real ModelNet40 objects: train/test x 3 classes, .npy files."""
-    return write_npy_tree(tmp_path_factory.mktemp('tree'), CLASSES, {'train': 6, 'test': 4})
+def tree(three_class_tree: Path) -> Path:
+    return three_class_tree
 
 
 def test_views_bank_single_view_eval_and_classify(tree: Path, tmp_path: Path,

@@ -3,7 +3,6 @@
 import json
 from pathlib import Path
 
-from conftest import write_npy_tree
 import numpy as np
 import pytest
 import torch
@@ -15,9 +14,6 @@ from point_gn_ros.bank.store import FeatureBank, to_stored
 from point_gn_ros.cli import main
 from point_gn_ros.errors import BankError
 from point_gn_ros.recognizer import encode_clouds, make_encoder
-
-CLASSES = ('chair', 'lamp', 'airplane')
-
 
 def test_int8_rows_round_trip_and_keep_cosines() -> None:
     u = torch.nn.functional.normalize(torch.randn(50, 64), dim=1)
@@ -50,9 +46,8 @@ def test_gate_tells_two_populations_apart_and_validates_its_arrays() -> None:
 
 
 @pytest.fixture(scope='module')
-def tree(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A folder tree of real ModelNet40 objects: train/test x 3 classes, .npy files."""
-    return write_npy_tree(tmp_path_factory.mktemp('tree'), CLASSES, {'train': 6, 'test': 4})
+def tree(three_class_tree: Path) -> Path:
+    return three_class_tree
 
 
 def test_sections_bank_cli_build_info_eval_enroll(tree: Path, tmp_path: Path,
