@@ -137,16 +137,12 @@ class FeatureBank:
     def save(self, path: str | os.PathLike[str], dtype: str = 'float16') -> Path:
         """Write the bank atomically; dtype of stored features: float16, float32 or int8."""
         path = Path(path)
-        arrays = self._arrays(dtype)
+        arrays = self._arrays(dtype, sectioned=self.views is not None)
         if self.views is not None:
             if self.gate is None:
                 raise ValueError('a bank with a views section needs its gate')
             arrays.update({VIEWS_PREFIX + k: v for k, v in self.views._arrays(dtype).items()})
             arrays.update(self.gate.arrays())
-        if self.views is not None:
-            meta = json.loads(arrays['meta'].tobytes().decode())
-            meta['format_version'] = FORMAT_VERSION
-            arrays['meta'] = _meta_bytes(meta)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + '.tmp')
         with open(tmp, 'wb') as f:
@@ -156,10 +152,14 @@ class FeatureBank:
         os.replace(tmp, path)
         return path
 
-    def _arrays(self, dtype: str) -> dict[str, np.ndarray]:
-        """The file arrays of this section alone (no views section, no gate)."""
+    def _arrays(self, dtype: str, sectioned: bool = False) -> dict[str, np.ndarray]:
+        """The file arrays of this section alone (no views section, no gate).
+
+        sectioned: the file also holds a views section (format 3, like int8 features).
+        """
         meta = dict(self.meta)
-        meta.update(format_version=FORMAT_VERSION if dtype == 'int8' else PLAIN_VERSION,
+        version = FORMAT_VERSION if dtype == 'int8' or sectioned else PLAIN_VERSION
+        meta.update(format_version=version,
                     encoder_version=ENCODER_VERSION,
                     encoder_config=self.config.to_dict(), class_names=list(self.class_names),
                     gamma=float(self.gamma), stored_dtype=dtype)
@@ -174,7 +174,7 @@ class FeatureBank:
         }
         if self.transform.projection is not None:
             arrays['tf_projection'] = self.transform.projection.cpu().numpy().astype(np.float32)
-        arrays['meta'] = _meta_bytes(meta)
+        arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
         for name, t in zip(_HEAD_ARRAYS, (head.whiten, head.lda_coef, head.lda_bias),
                            strict=True):
             if t is not None:
@@ -347,6 +347,3 @@ def to_stored(features: torch.Tensor, dtype: str) -> np.ndarray:
     scale = np.divide(np.float32(127.0), peak, out=np.zeros_like(peak), where=peak > 0)
     return np.clip(np.rint(x * scale), -127, 127).astype(np.int8)
 
-
-def _meta_bytes(meta: dict[str, Any]) -> np.ndarray:
-    return np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
