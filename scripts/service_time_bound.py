@@ -43,9 +43,9 @@ def main() -> None:
     from point_gn_ros.bank.store import FeatureBank
     from point_gn_ros.recognizer import Recognizer, make_encoder
 
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(1)   # the node default: the classifier on one torch thread
     values = {name: default for name, (default, _, _) in PARAMETERS.items()}
-    values.update(segment_field='segment', torch_threads=args.threads)
+    values.update(segment_field='segment', torch_threads=1, encoder_threads=args.threads)
     s = settings_from_values(values)
     bank = FeatureBank.load(None)
     rec = Recognizer(bank, 'cpu', s.resample, s.top_k, None,

@@ -44,7 +44,7 @@ def node_params(bank_path: Path, limits: Limits) -> dict[str, Any]:
             'max_points_per_message': limits.max_points,
             'max_objects_per_message': limits.max_objects, 'queue_size': 2000,
             'qos_reliability': 'reliable', 'qos_depth': 1000, 'max_batch': 16,
-            'torch_threads': 1}
+            'torch_threads': 1, 'encoder_threads': 1}
 
 
 class _Shapes:

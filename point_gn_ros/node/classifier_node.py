@@ -240,7 +240,8 @@ class ClassifierNode(LifecycleNode):
         # Pay compile / first-call costs before any message can arrive.
         warm_s = recognizer.warmup()
         self.get_logger().info(f'warm-up done in {warm_s:.1f} s: {recognizer.encoder!r}, '
-                               f'device {s.device}, {s.torch_threads} thread(s)')
+                               f'device {s.device}, {s.encoder_threads} encoder / '
+                               f'{s.torch_threads} torch thread(s)')
         self._set_recognizer(recognizer)
 
         self._outputs = Outputs(self, s.input_topics, s.qos_depth, self.has_vision_msgs)
@@ -274,9 +275,9 @@ class ClassifierNode(LifecycleNode):
             raise BankError(f'{bank.path}: bank was built for num_points='
                             f'{bank.config.num_points}, node parameter num_points='
                             f'{s.num_points}')
-        # The fast encoder runs its own worker pool (default: every CPU); it gets the
-        # same budget as torch, for the same reason.
-        encoder = make_encoder(bank.config, s.device, threads=s.torch_threads)
+        # The fast encoder runs its own worker pool (default: every CPU): bounded by its own
+        # parameter, apart from torch's (the classifier), which wants fewer.
+        encoder = make_encoder(bank.config, s.device, threads=s.encoder_threads)
         try:
             return Recognizer(bank, s.device, s.resample, s.top_k,
                               s.unknown_threshold or None, encoder=encoder, search=s.search)

@@ -40,6 +40,7 @@ class Settings:
     qos_reliability: str
     qos_depth: int
     torch_threads: int
+    encoder_threads: int = 2
     up_axis: str = 'auto'
     input_timeout_s: float = 10.0
     marker_lifetime_s: float = 2.0
@@ -95,9 +96,14 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                         {'additional_constraints': "one of 'best_effort', 'reliable'"}),
     'qos_depth': (5, 'Input (and output) QoS history depth.',
                   {'integer_range': _int_range(1, 1000)}),
-    'torch_threads': (2, 'Torch intra-op threads and fast-encoder worker threads; bounded on '
-                         'purpose so that they do not starve the executor and DDS threads.',
+    'torch_threads': (1, 'Torch intra-op threads (the classifier). 1: its per-batch products '
+                         'are small, and a second torch thread spins instead of working '
+                         '(BENCHMARKS.md, node CPU per answer).',
                       {'integer_range': _int_range(1, 256)}),
+    'encoder_threads': (2, 'Fast-encoder worker threads (batches; a lone cloud uses a second '
+                           'one only while the machine is idle); bounded on purpose so that '
+                           'they do not starve the executor and DDS threads.',
+                        {'integer_range': _int_range(1, 256)}),
     'up_axis': ('auto', "Which axis of the input frame points up; objects are turned z-up "
                         "before classification. 'auto' = -y for frames named *_optical_frame "
                         "(REP 103), else z; or one of z, -z, y, -y, x, -x for every frame.",
