@@ -96,3 +96,29 @@ def test_sections_bank_cli_build_info_eval_enroll(tree: Path, tmp_path: Path,
     np.savez(tmp_path / 'nogate.npz', **arrays)
     with pytest.raises(BankError, match='come together'):
         FeatureBank.load(tmp_path / 'nogate.npz')
+
+
+def test_a_section_the_gate_all_but_excludes_is_not_searched(tree: Path) -> None:
+    """Rows with a gate weight < GATE_SKIP skip that section; the mixture moves by < 1e-6."""
+    from point_gn_ros.bank.classifier import GATE_SKIP
+    from point_gn_ros.core.views import simulate_view
+
+    bank = FeatureBank.load(None)                  # the shipped two-section default
+    clf = Classifier(bank)
+    clouds = [np.load(f) for f in sorted((tree / 'test').glob('*/*.npy'))]
+    scans = [simulate_view(c, seed=i).points for i, c in enumerate(clouds)]
+    feats = encode_clouds(clouds + scans, make_encoder(bank.config))
+    p_scan = clf.gate.scan_probability(feats)
+    skip_v, skip_c = p_scan <= GATE_SKIP, p_scan >= 1 - GATE_SKIP
+    assert skip_v.any() and skip_c.any()           # both cases occur on real objects
+    seen: list[int] = []
+    section = clf.views.evaluate
+    clf.views.evaluate = lambda f: (seen.append(len(f)), section(f))[1]
+    prob, novelty = clf.evaluate(feats)
+    assert seen == [int((~skip_v).sum())]          # only the rows that need the scan section
+    with torch.no_grad():                          # the full mixture, both sections everywhere
+        pc, nc = clf._section(feats)
+        pv, nv = section(feats)
+    g = p_scan[:, None]
+    torch.testing.assert_close(prob, (1 - g) * pc + g * pv, atol=2e-6, rtol=0)
+    torch.testing.assert_close(novelty, (1 - p_scan) * nc + p_scan * nv, atol=4e-6, rtol=0)

@@ -47,6 +47,10 @@ SEARCHES = ('auto', 'exact', 'indexed')
 INDEX_MIN_ENTRIES = 20_000
 # Upper bound on queries x bank entries held at once (float32 similarity block).
 _MAX_BLOCK = 1 << 24
+# A section whose gate weight is below this is not evaluated for that row: its share of each
+# probability would be under 1e-6 (the gate is confident for ~85 % of queries, so most
+# queries search one section, not two).
+GATE_SKIP = 1e-6
 
 
 @dataclass
@@ -183,15 +187,26 @@ class Classifier:
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """-> probability (B, C), novelty (B,), gate's p(scan) (B,) or None."""
         features = features.to(self.device)
-        prob, novelty = self.head.evaluate_with(self.transform(features), self.search,
-                                                self.vote_bias)
         if self.views is None or self.gate is None:
-            return prob, novelty, None
+            return (*self._section(features), None)
         p_scan = self.gate.scan_probability(features)
-        prob_v, novelty_v = self.views.evaluate(features)
-        g = p_scan[:, None]
-        return ((1 - g) * prob + g * prob_v, (1 - p_scan) * novelty + p_scan * novelty_v,
-                p_scan)
+        # Each row is the gate's mix of the sections; a section weighing < GATE_SKIP for a
+        # row is skipped for it and its weight given to the other one.
+        use_c, use_v = p_scan < 1 - GATE_SKIP, p_scan > GATE_SKIP
+        g = torch.where(use_v, torch.where(use_c, p_scan, 1.0), 0.0)
+        prob = torch.zeros(len(features), len(self.bank.class_names), device=self.device)
+        novelty = torch.zeros(len(features), device=self.device)
+        for rows, weight, section in ((use_c, 1 - g, self._section),
+                                      (use_v, g, self.views.evaluate)):
+            if rows.any():
+                p, n = section(features[rows])
+                prob[rows] += weight[rows, None] * p
+                novelty[rows] += weight[rows] * n
+        return prob, novelty, p_scan
+
+    def _section(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The section's own head: (B, D) raw features -> probability (B, C), novelty (B,)."""
+        return self.head.evaluate_with(self.transform(features), self.search, self.vote_bias)
 
     @torch.no_grad()
     def scores(self, features: torch.Tensor) -> torch.Tensor:
