@@ -58,13 +58,16 @@ class LiveBank(Generic[Model]):
     """The current bank version plus serialised add / remove / save.
 
     make_model(active_bank) -> Model builds what readers use (called under the writer lock,
-    outside any reader's path).
+    outside any reader's path). derive(active_bank, previous_model) -> Model, optional: builds
+    the model of an add / remove from the previous version's (e.g. extending its search
+    index, bank/search.py) where make_model would start from nothing.
     """
 
     def __init__(self, file: BankFile, make_model: Callable[[FeatureBank], Model],
-                 policy: RefitPolicy | None = None) -> None:
+                 policy: RefitPolicy | None = None,
+                 derive: Callable[[FeatureBank, Model], Model] | None = None) -> None:
         self.policy = policy or RefitPolicy()
-        self._make_model = make_model
+        self._make_model, self._derive = make_model, derive
         self._lock = threading.Lock()
         # One pass over the bank now, so that every enrollment's LDA refit is cheap.
         self._snap = self._snapshot(file.with_stats())
@@ -82,14 +85,14 @@ class LiveBank(Generic[Model]):
         with self._lock:
             res = add_examples(self._snap.file, features, class_name, source, self.policy, when,
                                augment)
-            self._snap = self._snapshot(res.file)
+            self._snap = self._snapshot(res.file, self._snap)
         return res
 
     def remove(self, class_name: str, source: str, when: datetime | None = None
                ) -> EnrollResult:
         with self._lock:
             res = remove_class(self._snap.file, class_name, source, self.policy, when)
-            self._snap = self._snapshot(res.file)
+            self._snap = self._snapshot(res.file, self._snap)
         return res
 
     def rebuild(self) -> Snapshot[Model]:
@@ -108,6 +111,9 @@ class LiveBank(Generic[Model]):
             snap = self._snap
             return save_atomic(snap.file, path), snap.version
 
-    def _snapshot(self, file: BankFile) -> Snapshot[Model]:
+    def _snapshot(self, file: BankFile, previous: Snapshot[Model] | None = None
+                  ) -> Snapshot[Model]:
         active = active_view(file.bank, self.policy.min_examples)
+        if previous is not None and self._derive is not None:
+            return Snapshot(file, active, self._derive(active, previous.model))
         return Snapshot(file, active, self._make_model(active))
