@@ -6,7 +6,7 @@ import threading
 
 import torch
 
-from point_gn_ros.bank.rows import append_rows
+from point_gn_ros.bank.rows import append_rows, with_room
 
 
 def test_append_shares_one_buffer_and_keeps_every_version() -> None:
@@ -44,3 +44,11 @@ def test_concurrent_appends_to_one_version_never_share_rows() -> None:
         t.join()
     for i, v in enumerate(out):
         assert (v[11:] == i + 1).all() and (v[:11] == 0).all()
+
+
+def test_rows_with_room_take_the_first_append_in_place() -> None:
+    base = torch.randn(50, 6)
+    roomy = with_room(base)
+    assert torch.equal(roomy, base) and roomy.data_ptr() != base.data_ptr()
+    assert with_room(roomy) is roomy
+    assert append_rows(roomy, torch.randn(4, 6)).data_ptr() == roomy.data_ptr()

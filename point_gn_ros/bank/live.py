@@ -9,7 +9,7 @@ the whole batch: an answer is always computed with one consistent bank version. 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 import os
 from pathlib import Path
@@ -21,6 +21,7 @@ import torch
 from point_gn_ros.bank.enroll import (BankFile, EnrollResult, RefitPolicy, active_view,
                                       add_examples, bank_version, class_counts, remove_class,
                                       save_atomic)
+from point_gn_ros.bank.rows import with_room
 from point_gn_ros.bank.store import FeatureBank
 
 Model = TypeVar('Model')
@@ -69,8 +70,9 @@ class LiveBank(Generic[Model]):
         self.policy = policy or RefitPolicy()
         self._make_model, self._derive = make_model, derive
         self._lock = threading.Lock()
-        # One pass over the bank now, so that every enrollment's LDA refit is cheap.
-        self._snap = self._snapshot(file.with_stats())
+        # One pass over the bank now, so that every enrollment's LDA refit is cheap, and
+        # its rows moved to where enrollments append without copying them (bank/rows.py).
+        self._snap = self._snapshot(_with_room(file.with_stats()))
 
     def current(self) -> Snapshot[Model]:
         """The latest published version (never blocks: a reference read)."""
@@ -117,3 +119,11 @@ class LiveBank(Generic[Model]):
         if previous is not None and self._derive is not None:
             return Snapshot(file, active, self._derive(active, previous.model))
         return Snapshot(file, active, self._make_model(active))
+
+
+def _with_room(file: BankFile) -> BankFile:
+    """The same bank (values bit for bit) with each section's rows in an appendable buffer."""
+    views = None if file.views is None else _with_room(file.views)
+    bank = replace(file.bank, features=with_room(file.bank.features),
+                   views=None if views is None else views.bank)
+    return replace(file, bank=bank, views=views)

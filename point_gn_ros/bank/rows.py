@@ -59,6 +59,16 @@ def append_rows(rows: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
     return _view(_Buffer(rows, new), n + m)
 
 
+def with_room(rows: torch.Tensor) -> torch.Tensor:
+    """The same values (N, d) in a buffer with spare room, so the first append is in place.
+
+    For a bank about to take enrollments (bank/live.py): the one copy happens here, once.
+    """
+    if rows.device.type != 'cpu' or getattr(rows, '_pgn_rows', None) is not None:
+        return rows
+    return _view(_Buffer(rows, rows[:0]), rows.shape[0])
+
+
 def _view(buf: _Buffer, n: int) -> torch.Tensor:
     out = buf.data[:n]
     out._pgn_rows = buf          # the next append finds its buffer here
