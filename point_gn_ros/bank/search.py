@@ -18,6 +18,12 @@ Entries outside the candidates are far enough below the best that their votes ba
 count; when one would have changed the label, the labels differ: `bench` and
 `scripts/search_agreement.py` report how often against the full float32 search.
 
+Enrollment: a new bank version that only appends rows or drops a class derives its index
+from the previous one (`BankIndex.derive`: the basis, i.e. rotation and int8 scales, is
+kept, the new rows' codes are computed alone; pgn_project.c makes a row's projection
+independent of the batch), identical to a fresh build on that basis. A fresh basis is
+fitted when the rows changed otherwise or drifted by `BASIS_DRIFT` since it was fitted.
+
 Use: `IndexedSearch` is the classifier's vote for large banks (bank/classifier.py picks
 it by bank size, `search='auto'`); `BankIndex.scores` gives plain vote shares like
 `classifier.class_scores`, for scripts and benchmarks.
