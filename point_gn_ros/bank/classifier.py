@@ -116,10 +116,16 @@ def resolve_search(search: str, entries: int, device: torch.device | str = 'cpu'
 
 
 def make_search(kind: str, bank_u: torch.Tensor, bank_labels: torch.Tensor,
-                num_classes: int) -> VoteSearch:
-    """The vote search `kind` ('exact' or 'indexed') over rows bank_u (N, d), labels (N,)."""
+                num_classes: int, previous: VoteSearch | None = None) -> VoteSearch:
+    """The vote search `kind` ('exact' or 'indexed') over rows bank_u (N, d), labels (N,).
+
+    previous: the search of the bank version before (an enrollment's); an index is then
+    derived from it where that is exact (bank/search.py `IndexedSearch.derive`).
+    """
     if kind == 'indexed':
         from point_gn_ros.bank.search import IndexedSearch
+        if isinstance(previous, IndexedSearch):
+            return IndexedSearch.derive(previous, bank_u, bank_labels, num_classes)
         return IndexedSearch(bank_u, bank_labels, num_classes)
     if kind != 'exact':
         raise ValueError(f'search kind {kind!r} must be exact or indexed')
@@ -141,11 +147,14 @@ class Classifier:
     def __init__(self, bank: FeatureBank, device: str = 'cpu',
                  unknown_threshold: float | None = None, gamma: float | None = None,
                  novelty_threshold: float | None = None, search: str = 'auto',
-                 index_min_entries: int = INDEX_MIN_ENTRIES) -> None:
+                 index_min_entries: int = INDEX_MIN_ENTRIES,
+                 previous: 'Classifier | None' = None) -> None:
         """Classifier of one bank version (the search is built here, once).
 
         gamma: override the bank's (comparisons only); search: 'auto', 'exact' or
-        'indexed' (module docstring); index_min_entries: the size from which 'auto' indexes.
+        'indexed' (module docstring); index_min_entries: the size from which 'auto' indexes;
+        previous: the classifier of the version this one follows (an enrollment): its
+        indexes are extended instead of rebuilt where that gives the same (`make_search`).
         """
         self.bank = bank
         self.device = torch.device(device)
@@ -159,12 +168,14 @@ class Classifier:
         self.search_kind = resolve_search(search, len(bank.labels), self.device,
                                           index_min_entries)
         self.search = make_search(self.search_kind, self.features, self.labels,
-                                  bank.num_classes)
+                                  bank.num_classes,
+                                  None if previous is None else previous.search)
         # Opt-in class-size prior of enrolled classes (bank/vote_prior.py); None: plain vote.
         self.vote_bias = vote_log_bias(bank.meta, bank.class_names, bank.labels)
         # A sectioned bank: the scan section has its own classifier, mixed by the gate.
         self.views = None if bank.views is None else Classifier(
-            bank.views, device, gamma=None, search=search, index_min_entries=index_min_entries)
+            bank.views, device, gamma=None, search=search, index_min_entries=index_min_entries,
+            previous=None if previous is None else previous.views)
         self.gate = None if bank.gate is None else bank.gate.to(self.device)
         self.novelty_threshold = novelty_threshold or None
         if unknown_threshold is not None and unknown_threshold < 0:

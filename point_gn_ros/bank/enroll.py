@@ -34,6 +34,7 @@ import torch
 
 from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, ScatterStats,
                                      active_view, example_counts, refit, vote_to_z)
+from point_gn_ros.bank.rows import append_rows
 from point_gn_ros.bank.store import FeatureBank, to_stored
 from point_gn_ros.bank.vote_prior import is_listed, with_listed, without
 from point_gn_ros.core.augment import variants_per_example
@@ -217,7 +218,7 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
     cid = names.index(class_name)
     # Canonical frames only: the k frames of one example are alike by construction.
     dups, n_dups = near_duplicates(new[::k], bank, cid, policy.duplicate_cosine)
-    feats = torch.cat([bank.features, new])
+    feats = append_rows(bank.features, new)       # bank/rows.py: no copy of the bank rows
     labels = torch.cat([bank.labels, torch.full((len(new),), cid, dtype=torch.int64)])
     extra = {} if k == 1 else {'examples': len(new) // k, 'augment': augment}
     meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups,

@@ -9,7 +9,7 @@ the whole batch: an answer is always computed with one consistent bank version. 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 import os
 from pathlib import Path
@@ -21,6 +21,7 @@ import torch
 from point_gn_ros.bank.enroll import (BankFile, EnrollResult, RefitPolicy, active_view,
                                       add_examples, bank_version, class_counts, remove_class,
                                       save_atomic)
+from point_gn_ros.bank.rows import with_room
 from point_gn_ros.bank.store import FeatureBank
 
 Model = TypeVar('Model')
@@ -58,16 +59,20 @@ class LiveBank(Generic[Model]):
     """The current bank version plus serialised add / remove / save.
 
     make_model(active_bank) -> Model builds what readers use (called under the writer lock,
-    outside any reader's path).
+    outside any reader's path). derive(active_bank, previous_model) -> Model, optional: builds
+    the model of an add / remove from the previous version's (e.g. extending its search
+    index, bank/search.py) where make_model would start from nothing.
     """
 
     def __init__(self, file: BankFile, make_model: Callable[[FeatureBank], Model],
-                 policy: RefitPolicy | None = None) -> None:
+                 policy: RefitPolicy | None = None,
+                 derive: Callable[[FeatureBank, Model], Model] | None = None) -> None:
         self.policy = policy or RefitPolicy()
-        self._make_model = make_model
+        self._make_model, self._derive = make_model, derive
         self._lock = threading.Lock()
-        # One pass over the bank now, so that every enrollment's LDA refit is cheap.
-        self._snap = self._snapshot(file.with_stats())
+        # One pass over the bank now, so that every enrollment's LDA refit is cheap, and
+        # its rows moved to where enrollments append without copying them (bank/rows.py).
+        self._snap = self._snapshot(_with_room(file.with_stats()))
 
     def current(self) -> Snapshot[Model]:
         """The latest published version (never blocks: a reference read)."""
@@ -82,14 +87,14 @@ class LiveBank(Generic[Model]):
         with self._lock:
             res = add_examples(self._snap.file, features, class_name, source, self.policy, when,
                                augment)
-            self._snap = self._snapshot(res.file)
+            self._snap = self._snapshot(res.file, self._snap)
         return res
 
     def remove(self, class_name: str, source: str, when: datetime | None = None
                ) -> EnrollResult:
         with self._lock:
             res = remove_class(self._snap.file, class_name, source, self.policy, when)
-            self._snap = self._snapshot(res.file)
+            self._snap = self._snapshot(res.file, self._snap)
         return res
 
     def rebuild(self) -> Snapshot[Model]:
@@ -108,6 +113,17 @@ class LiveBank(Generic[Model]):
             snap = self._snap
             return save_atomic(snap.file, path), snap.version
 
-    def _snapshot(self, file: BankFile) -> Snapshot[Model]:
+    def _snapshot(self, file: BankFile, previous: Snapshot[Model] | None = None
+                  ) -> Snapshot[Model]:
         active = active_view(file.bank, self.policy.min_examples)
+        if previous is not None and self._derive is not None:
+            return Snapshot(file, active, self._derive(active, previous.model))
         return Snapshot(file, active, self._make_model(active))
+
+
+def _with_room(file: BankFile) -> BankFile:
+    """The same bank (values bit for bit) with each section's rows in an appendable buffer."""
+    views = None if file.views is None else _with_room(file.views)
+    bank = replace(file.bank, features=with_room(file.bank.features),
+                   views=None if views is None else views.bank)
+    return replace(file, bank=bank, views=views)

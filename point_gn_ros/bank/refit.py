@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 import copy
+import threading
 from typing import Any, Literal
 
 import numpy as np
@@ -318,8 +319,28 @@ def vote_to_z(u: torch.Tensor, head: Head | None) -> torch.Tensor:
     """
     if head is None or head.whiten is None:
         return u
-    inv = torch.linalg.inv(head.whiten.double())
-    return torch.nn.functional.normalize(u.double() @ inv, dim=1).float()
+    return torch.nn.functional.normalize(u.double() @ _unwhitening(head.whiten), dim=1).float()
+
+
+# (whitening tensor, its float64 inverse) by id: every enrollment maps its new rows back to
+# z with the section's unchanged whitening; inverting it each time cost 20 ms per section.
+_INVERSES: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+_MAX_INVERSES = 8
+_INVERSES_LOCK = threading.Lock()
+
+
+def _unwhitening(whiten: torch.Tensor) -> torch.Tensor:
+    """W^-1 (d, d) float64 of a whitening W, cached (heads are immutable once fitted)."""
+    with _INVERSES_LOCK:
+        hit = _INVERSES.get(id(whiten))
+    if hit is not None and hit[0] is whiten:
+        return hit[1]
+    inv = torch.linalg.inv(whiten.double())
+    with _INVERSES_LOCK:
+        if len(_INVERSES) >= _MAX_INVERSES:
+            _INVERSES.pop(next(iter(_INVERSES)))
+        _INVERSES[id(whiten)] = (whiten, inv)   # holding whiten keeps its id unique
+    return inv
 
 
 def _expand_lda(head: Head, present: np.ndarray, num_classes: int) -> Head:

@@ -18,6 +18,12 @@ Entries outside the candidates are far enough below the best that their votes ba
 count; when one would have changed the label, the labels differ: `bench` and
 `scripts/search_agreement.py` report how often against the full float32 search.
 
+Enrollment: a new bank version that only appends rows or drops a class derives its index
+from the previous one (`BankIndex.derive`: the basis, i.e. rotation and int8 scales, is
+kept, the new rows' codes are computed alone; pgn_project.c makes a row's projection
+independent of the batch), identical to a fresh build on that basis. A fresh basis is
+fitted when the rows changed otherwise or drifted by `BASIS_DRIFT` since it was fitted.
+
 Use: `IndexedSearch` is the classifier's vote for large banks (bank/classifier.py picks
 it by bank size, `search='auto'`); `BankIndex.scores` gives plain vote shares like
 `classifier.class_scores`, for scripts and benchmarks.
@@ -26,6 +32,7 @@ it by bank size, `search='auto'`); `BankIndex.scores` gives plain vote shares li
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import numpy as np
 import torch
@@ -43,6 +50,10 @@ CANDIDATES = 1024
 # Rows used to find the principal axes (a sample: the rotation only steers the coarse
 # pass, the rescoring is exact whatever it is).
 _PCA_ROWS = 20_000
+# A derived index (`BankIndex.derive`: enrollments append rows, removals drop a class) keeps
+# its basis until this share of the rows it was fitted on was appended or removed; then the
+# next version fits a fresh one. (20 new examples on the 39k-entry scan section: 0.05 %.)
+BASIS_DRIFT = 0.1
 
 
 def vote_shares(sims: np.ndarray, labels: np.ndarray, num_classes: int,
@@ -59,32 +70,23 @@ def vote_shares(sims: np.ndarray, labels: np.ndarray, num_classes: int,
     return (votes / votes.sum()).astype(np.float32)
 
 
-class BankIndex:
-    """Two-stage search over a bank's (transformed, unit-row) features.
+class IndexBasis:
+    """The coarse pass's coordinates: the bank's leading principal axes, int8 scales.
 
-    features: (N, d) float32 unit rows; labels: (N,) int class ids in [0, num_classes);
-    coarse_dims: int8 coordinates per entry in the coarse pass (a multiple of 32, <= d;
-    None: the fewest holding `COARSE_ENERGY` of the bank's energy, so a flat spectrum, e.g.
-    a whitened vote space, keeps more); candidates: entries rescored exactly per query.
-    Memory: N x coarse_dims bytes beside the float32 features (kept by reference when
-    already float32 and C-contiguous).
+    rotation (d, r) float32 orthonormal columns; scale (r,) float32 per coordinate (a
+    coordinate's largest |value| over the rows it was fitted on maps to 127); energy: share
+    of those rows' squared norms on the r coordinates; rows: how many rows it was fitted on.
     """
 
-    def __init__(self, features: np.ndarray, labels: np.ndarray, num_classes: int,
-                 coarse_dims: int | None = None, candidates: int = CANDIDATES) -> None:
-        feats = np.ascontiguousarray(features, dtype=np.float32)
-        if feats.ndim != 2 or feats.shape[0] == 0:
-            raise ValueError(f'features must be (N, d) with N >= 1, got {feats.shape}')
+    def __init__(self, rotation: np.ndarray, scale: np.ndarray, energy: float, rows: int
+                 ) -> None:
+        self.rotation, self.scale, self.energy, self.rows = rotation, scale, energy, rows
+
+    @classmethod
+    def fit(cls, feats: np.ndarray, coarse_dims: int | None, lib: Any
+            ) -> tuple['IndexBasis', np.ndarray]:
+        """Fit on feats (N, d) float32 -> (basis, the rows' coordinates (N, r) float32)."""
         n, d = feats.shape
-        labels = np.asarray(labels).astype(np.int64, copy=False).reshape(-1)
-        if labels.shape[0] != n:
-            raise ValueError(f'{labels.shape[0]} labels for {n} entries')
-        if labels.min() < 0 or labels.max() >= num_classes:
-            raise ValueError(f'labels outside [0, {num_classes})')
-        self.features, self.labels, self.num_classes = feats, labels, int(num_classes)
-        self.candidates = max(1, int(candidates))
-        self._lib = kernels.load()
-        self._local = threading.local()
         # Principal axes of the (uncentred) second moment: they carry the most of every
         # dot product, so the leading coordinates approximate the cosines best.
         # In torch, on its thread budget (the node's torch_threads): numpy's BLAS threads
@@ -97,13 +99,149 @@ class BankIndex:
             coarse_dims = 32 * (int(np.searchsorted(share, COARSE_ENERGY - 1e-9)) // 32 + 1)
         r = min(d, max(32, coarse_dims // 32 * 32))
         order = torch.arange(r)
-        self.rotation = evecs[:, order].float().contiguous().numpy()     # (d, r)
+        rotation = evecs[:, order].float().contiguous().numpy()          # (d, r)
         # share of the bank's squared norms on the coarse coordinates: the closer to 1,
         # the better the coarse pass ranks (issue 13's 512-d bank, 128 coords: 0.93)
-        self.coarse_energy = float(evals[order].sum() / evals.sum().clamp_min(1e-30))
-        z = (torch.from_numpy(feats) @ torch.from_numpy(self.rotation)).numpy()  # (N, r)
-        self.scale = np.maximum(np.abs(z).max(axis=0), 1e-12) / 127.0     # (r,)
-        self.codes = np.ascontiguousarray(np.rint(z / self.scale), dtype=np.int8)
+        energy = float(evals[order].sum() / evals.sum().clamp_min(1e-30))
+        z = _project(feats, rotation, lib)
+        scale = np.maximum(np.abs(z).max(axis=0), 1e-12) / 127.0          # (r,)
+        return cls(rotation, scale, energy, n), z
+
+    def quantize(self, z: np.ndarray) -> np.ndarray:
+        """Coordinates (M, r) float32 -> int8 codes (M, r), saturated at +-127."""
+        return np.ascontiguousarray(np.clip(np.rint(z / self.scale), -127, 127),
+                                    dtype=np.int8)
+
+    def encode(self, feats: np.ndarray, lib: Any) -> np.ndarray:
+        """Rows (M, d) float32 -> int8 codes (M, r); row by row the same in any batch."""
+        return self.quantize(_project(feats, self.rotation, lib))
+
+
+def _project(feats: np.ndarray, rotation: np.ndarray, lib: Any) -> np.ndarray:
+    """Rows feats (N, d) @ rotation (d, r) -> (N, r) float32.
+
+    With the C kernels each row's result does not depend on the others (pgn_project.c), so
+    an index's appended codes equal a fresh build's; torch's GEMM otherwise.
+    """
+    if lib is None:
+        return (torch.from_numpy(feats) @ torch.from_numpy(rotation)).numpy()
+    feats = np.ascontiguousarray(feats, dtype=np.float32)
+    out = np.empty((feats.shape[0], rotation.shape[1]), np.float32)
+    lib.pgn_project_f32(feats.ctypes.data, feats.shape[0], feats.shape[1],
+                        rotation.ctypes.data, rotation.shape[1], out.ctypes.data)
+    return out
+
+
+def _check_rows(features: np.ndarray, labels: np.ndarray, num_classes: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """-> (N, d) C-contiguous float32 rows (N >= 1), (N,) int64 labels in [0, num_classes)."""
+    feats = np.ascontiguousarray(features, dtype=np.float32)
+    if feats.ndim != 2 or feats.shape[0] == 0:
+        raise ValueError(f'features must be (N, d) with N >= 1, got {feats.shape}')
+    labels = np.asarray(labels).astype(np.int64, copy=False).reshape(-1)
+    if labels.shape[0] != feats.shape[0]:
+        raise ValueError(f'{labels.shape[0]} labels for {feats.shape[0]} entries')
+    if labels.min() < 0 or labels.max() >= num_classes:
+        raise ValueError(f'labels outside [0, {num_classes})')
+    return feats, labels
+
+
+def _same_rows(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two (N, d) float32 arrays hold the same values (the same memory: at once)."""
+    if a.shape != b.shape:
+        return False
+    if a.ctypes.data == b.ctypes.data and a.strides == b.strides:
+        return True     # banks are copy-on-write: memory once published never changes
+    return bool(np.array_equal(a, b))
+
+
+class BankIndex:
+    """Two-stage search over a bank's (transformed, unit-row) features.
+
+    features: (N, d) float32 unit rows; labels: (N,) int class ids in [0, num_classes);
+    coarse_dims: int8 coordinates per entry in the coarse pass (a multiple of 32, <= d;
+    None: the fewest holding `COARSE_ENERGY` of the bank's energy, so a flat spectrum, e.g.
+    a whitened vote space, keeps more); candidates: entries rescored exactly per query;
+    basis: the coarse coordinates to use (another index's, see `derive`; None: fitted on
+    these features). Memory: N x coarse_dims bytes beside the float32 features (kept by
+    reference when already float32 and C-contiguous).
+    """
+
+    def __init__(self, features: np.ndarray, labels: np.ndarray, num_classes: int,
+                 coarse_dims: int | None = None, candidates: int = CANDIDATES,
+                 basis: IndexBasis | None = None) -> None:
+        feats, labels = _check_rows(features, labels, num_classes)
+        self.features, self.labels, self.num_classes = feats, labels, int(num_classes)
+        self.candidates = max(1, int(candidates))
+        self._lib = kernels.load()
+        self._local = threading.local()
+        if basis is None:
+            self.basis, z = IndexBasis.fit(feats, coarse_dims, self._lib)
+            self.codes = self.basis.quantize(z)
+        else:
+            self.basis = basis
+            self.codes = basis.encode(feats, self._lib)
+        # entries appended or removed since the basis was fitted (see `derive`)
+        self.changed = 0
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return self.basis.rotation
+
+    @property
+    def scale(self) -> np.ndarray:
+        return self.basis.scale
+
+    @property
+    def coarse_energy(self) -> float:
+        return self.basis.energy
+
+    def derive(self, features: np.ndarray, labels: np.ndarray, num_classes: int,
+               max_drift: float = BASIS_DRIFT) -> 'BankIndex | None':
+        """The index of a next bank version built from this one, or None (build it afresh).
+
+        features (N', d), labels (N',): the new version's rows. Derived when they are this
+        index's rows with rows appended (an enrollment) or with one class's rows removed
+        (later ids shift down), checked on the data; the new rows' codes are computed, the
+        others reused. Identical to `BankIndex(features, labels, num_classes,
+        basis=self.basis)`. None when the rows changed otherwise (a refit re-whitened them),
+        without the row-exact kernel, or once more than `max_drift` x the basis's rows were
+        appended or removed since it was fitted (then a fresh basis follows the bank).
+        """
+        feats, labels = _check_rows(features, labels, num_classes)
+        n0, n1 = len(self.labels), len(labels)
+        if self._lib is None or feats.shape[1] != self.features.shape[1] or \
+                self.changed + abs(n1 - n0) > max_drift * self.basis.rows:
+            return None
+        if n1 >= n0 and num_classes >= self.num_classes:
+            if not (np.array_equal(labels[:n0], self.labels)
+                    and _same_rows(feats[:n0], self.features)):
+                return None
+            codes = np.concatenate([self.codes, self.basis.encode(feats[n0:], self._lib)])
+        else:
+            keep = self._removal(feats, labels, num_classes)
+            if keep is None:
+                return None
+            codes = self.codes[keep]
+        out = object.__new__(BankIndex)
+        out.features, out.labels, out.num_classes = feats, labels, int(num_classes)
+        out.candidates, out._lib, out._local = self.candidates, self._lib, threading.local()
+        out.basis, out.codes, out.changed = self.basis, codes, self.changed + abs(n1 - n0)
+        return out
+
+    def _removal(self, feats: np.ndarray, labels: np.ndarray, num_classes: int
+                 ) -> np.ndarray | None:
+        """(N,) bool rows kept when `feats, labels` are these rows less one class, else None."""
+        if num_classes != self.num_classes - 1:
+            return None
+        counts = np.bincount(self.labels, minlength=self.num_classes)
+        for c in np.flatnonzero(counts == len(self.labels) - len(labels)):
+            keep = self.labels != c
+            kept = self.labels[keep]
+            if np.array_equal(kept - (kept > c), labels) and \
+                    np.array_equal(self.features[keep], feats):
+                return keep
+        return None
 
     @property
     def coarse_dims(self) -> int:
@@ -187,12 +325,35 @@ class IndexedSearch:
     """
 
     def __init__(self, bank_u: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,
-                 coarse_dims: int | None = None, candidates: int = CANDIDATES) -> None:
-        self.num_classes = int(num_classes)
-        self.index = BankIndex(bank_u.detach().cpu().float().numpy(),
-                               bank_labels.detach().cpu().numpy(), num_classes,
-                               coarse_dims=coarse_dims, candidates=candidates)
-        self.counts = np.bincount(self.index.labels, minlength=self.num_classes)   # (C,)
+                 coarse_dims: int | None = None, candidates: int = CANDIDATES,
+                 basis: IndexBasis | None = None) -> None:
+        self._adopt(BankIndex(bank_u.detach().cpu().float().numpy(),
+                              bank_labels.detach().cpu().numpy(), num_classes,
+                              coarse_dims=coarse_dims, candidates=candidates, basis=basis))
+        self.derived = False
+
+    @classmethod
+    def derive(cls, previous: 'IndexedSearch', bank_u: torch.Tensor, bank_labels: torch.Tensor,
+               num_classes: int) -> 'IndexedSearch':
+        """The search of the next bank version, from `previous`'s where that is exact.
+
+        From previous's index when the rows only gained rows or lost a class
+        (`BankIndex.derive`: identical to a build on previous's basis), else built afresh.
+        `derived` says which.
+        """
+        u, y = bank_u.detach().cpu().float().numpy(), bank_labels.detach().cpu().numpy()
+        index = previous.index.derive(u, y, num_classes)
+        if index is None:
+            return cls(bank_u, bank_labels, num_classes,
+                       candidates=previous.index.candidates)
+        out = object.__new__(cls)
+        out._adopt(index)
+        out.derived = True
+        return out
+
+    def _adopt(self, index: BankIndex) -> None:
+        self.index, self.num_classes = index, index.num_classes
+        self.counts = np.bincount(index.labels, minlength=self.num_classes)   # (C,)
         self.absent = self.counts == 0
 
     def log_votes(self, u: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:

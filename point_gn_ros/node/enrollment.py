@@ -142,7 +142,8 @@ class Enrollment(ManagedEntity):
         policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'],
                              lda_prior=prior, vote_prior=float(self.values['enroll_vote_prior']))
         try:
-            self.live = LiveBank(_bank_file(node.recognizer.bank), self._make_model, policy)
+            self.live = LiveBank(_bank_file(node.recognizer.bank), self._make_model, policy,
+                                 derive=self._make_model)
             node.replace_recognizer(self.live.current().model)
         except (PointGNError, ValueError) as exc:
             log.error(f'enrollment: {exc}')
@@ -217,12 +218,16 @@ class Enrollment(ManagedEntity):
             self.engine.close()
         self.engine = self.live = self._pipeline = None
 
-    def _make_model(self, bank: Any) -> Any:
-        """A recognizer for one bank version, sharing the node's encoder."""
+    def _make_model(self, bank: Any, previous: Any = None) -> Any:
+        """A recognizer for one bank version, sharing the node's encoder.
+
+        previous: the recognizer of the version before (an enrollment): its search index is
+        extended rather than rebuilt where that is exact (bank/search.py).
+        """
         from point_gn_ros.recognizer import Recognizer
         s, enc = self.node.settings, self.node.recognizer.encoder
         return Recognizer(bank, s.device, s.resample, s.top_k, s.unknown_threshold or None,
-                          encoder=enc, search=s.search)
+                          encoder=enc, search=s.search, previous=previous)
 
     # ------------------------------------------------------------------ worker hooks
 

@@ -10,8 +10,9 @@ The stage loops have three builds, chosen at compile time by what -march=native 
 AVX-512 (pgn_avx512.c), AVX2 + FMA (pgn_avx2.c, CPUs without AVX-512) and portable C;
 `simd_width()` says which one runs.
 
-pgn_geom.c is compiled without fast-math and with -ffp-contract=off (distances
-must round exactly like the oracle's); the stage files (pgn_stage.c, pgn_avx512.c,
+pgn_geom.c and pgn_project.c are compiled without fast-math and with -ffp-contract=off
+(distances must round exactly like the oracle's; an index row's projection must not depend
+on the rows beside it); the stage files (pgn_stage.c, pgn_avx512.c,
 pgn_avx2.c, pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's libmvec);
 pgn_peak.c (roofline micro-benchmarks) without. The link step omits -ffast-math so that gcc does
 not add crtfastmath.o, which would flush denormals to zero process-wide.
@@ -39,6 +40,8 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_avx2.c': ['-ffast-math'],  # AVX2 + FMA stage loops (CPUs without AVX-512)
             'pgn_encode.c': ['-ffast-math'],
             'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
+            # the index's projection: row results must not depend on the batch
+            'pgn_project.c': ['-fno-fast-math', '-ffp-contract=off'],
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
 _HEADERS = ('pgn_common.h',)  # included by the stage files: part of the snapshot and key
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
@@ -213,6 +216,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_top_m.argtypes = [p, i64, i64, p, p]
     lib.pgn_scan_f32.restype = None
     lib.pgn_scan_f32.argtypes = [p, i64, p, i64, p, p]
+    lib.pgn_project_f32.restype = None
+    lib.pgn_project_f32.argtypes = [p, i64, i64, p, i64, p]
 
 
 def load() -> ctypes.CDLL | None:
