@@ -47,7 +47,9 @@ from point_gn_ros.recognizer import make_encoder
 VARIANTS = ('a', 'b', 'c2', 'c4', 'c4h', 'c4v')
 # (dims, gamma, whitening shrinkage, LDA shrinkage, LDA weight): gated_study's scan expert, and
 # the shipped scan section's CV-chosen knobs.
-KNOBS = {'gated': (320, 40.0, 0.1, 0.02, 0.3), 'shipped': (320, 20.0, 0.1, 0.01, 0.2)}
+KNOBS = {'gated': (320, 40.0, 0.1, 0.02, 0.3), 'shipped': (320, 20.0, 0.1, 0.01, 0.2),
+         # narrower scan sections: what 8 scans per object at the 25 MB cap would allow
+         'gated224': (224, 40.0, 0.1, 0.02, 0.3), 'gated192': (192, 40.0, 0.1, 0.02, 0.3)}
 STUDY_VERSION = 1   # bump when a variant's frame changes (cached features re-key)
 
 
