@@ -91,6 +91,8 @@ typedef struct agg_job {
     const float *ccs;
     const int32_t *lane_axis;
     float sc;
+    const float *cents;   /* this stage's centres of one axis (d18) */
+    int d18;
 #endif
 } agg_job;
 
@@ -109,6 +111,11 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     }
 #endif
 #if defined(PGN_AVX2) && !defined(PGN_NO_D32)
+    if (j->d18) {
+        pgn_aggregate_d18_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cents,
+                               j->sc, out, j->mx[tid]);
+        return;
+    }
     if (j->d32) {
         pgn_aggregate_d32_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs,
                                j->lane_axis, j->sc, out, j->mx[tid]);
@@ -439,6 +446,11 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             }
             job.d32 = 1;
             job.ccs = ccs; job.lane_axis = lane_axis; job.sc = sc;
+#if !defined(PGN_NO_D18)
+            /* 4 exps per neighbour instead of 8 where the factors stay in range */
+            job.d18 = pgn_d18_ok(D, q);
+            job.cents = cents;
+#endif
         }
 #endif
         par_run(par, &job);
