@@ -120,8 +120,8 @@ void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             float *out, float *acc);
 void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
-                            float r, float *out, float *mx, float *sm, float *G, float *OFF,
-                            int32_t *SRC, sep_t *fx);
+                            float r, float *out, float *mx, float *sm, float *G, float *RV,
+                            float *G2, int32_t *SRC, sep_t *fx);
 int pgn_d18_ok(int64_t D, float q);
 void pgn_aggregate_d18_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,

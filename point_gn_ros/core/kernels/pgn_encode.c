@@ -123,9 +123,9 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     }
 #endif
 #if defined(PGN_AVX2) && !defined(PGN_NO_SEP256)
-    if (j->use_fx) {  /* G, OFF, SRC in the pe buffers, which this path does not use */
+    if (j->use_fx) {  /* G, RV, G2, SRC in the pe buffers, which this path does not use */
         pgn_aggregate_sep_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
-                               j->sm[tid], j->pe[tid], j->pe[tid] + j->PS,
+                               j->sm[tid], j->pe[tid], j->pe[tid] + j->PS, j->pe[tid] + 3 * j->PS,
                                (int32_t *)(j->pe[tid] + 2 * j->PS), &j->fx[tid]);
         return;
     }
