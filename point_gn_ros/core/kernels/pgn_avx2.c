@@ -274,6 +274,9 @@ void pgn_aggregate_d18_avx2(const float *feat, int64_t D, const int64_t *cidx,
  * at a * 8M, lanes past its n centres computed and ignored) and a block never spills into
  * the next axis. G: per lane cf[ch] (ch < D) or cf[ch - D]; RV: r where ch < D, else 0;
  * G2: 0 where ch < D, else G. */
+#ifndef SEP_NT
+#define SEP_NT 8  /* neighbours per pass: one max / sum update per block */
+#endif
 static inline __attribute__((always_inline)) void sep_pass8(
         const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
         const float *G, const float *RV, const float *G2, float *mx, float *sm) {
@@ -283,7 +286,7 @@ static inline __attribute__((always_inline)) void sep_pass8(
     const __m256 b2 = _mm256_castsi256_ps(_mm256_setr_epi32(0, 0, -1, -1, 0, 0, -1, -1));
     const __m256 b4 = _mm256_castsi256_ps(_mm256_setr_epi32(0, 0, 0, 0, -1, -1, -1, -1));
     for (int a = 0; a < 3; ++a) {
-        __m256 e[4];
+        __m256 e[SEP_NT];
         for (int i = 0; i < nt; ++i) {
             const int64_t ta = 3 * (t0 + i) + a;
             const __m256 p1 = _mm256_blendv_ps(one, _mm256_set1_ps(fx->E[1 * nta + ta]), b1);
@@ -298,7 +301,7 @@ static inline __attribute__((always_inline)) void sep_pass8(
             const __m256 rv = _mm256_load_ps(RV + pa), g2 = _mm256_load_ps(G2 + pa);
             const int any_off = !_mm256_testz_si256(_mm256_castps_si256(rv),
                                                     _mm256_castps_si256(rv));
-            __m256 w[4];
+            __m256 w[SEP_NT];
             for (int i = 0; i < nt; ++i) {
                 const __m256 am = _mm256_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]);
                 const __m256 pe = _mm256_mul_ps(am, _mm256_mul_ps(T, e[i]));
@@ -314,9 +317,16 @@ static inline __attribute__((always_inline)) void sep_pass8(
                 }
             }
             __m256 wm = w[0], ws = w[0];
-            if (nt == 4) {
-                wm = _mm256_max_ps(_mm256_max_ps(w[0], w[1]), _mm256_max_ps(w[2], w[3]));
-                ws = _mm256_add_ps(_mm256_add_ps(w[0], w[1]), _mm256_add_ps(w[2], w[3]));
+            if (nt == SEP_NT) {  /* pairwise trees */
+                __m256 tm[SEP_NT], ts[SEP_NT];
+                for (int i = 0; i < SEP_NT; ++i) tm[i] = ts[i] = w[i];
+                for (int h = SEP_NT / 2; h >= 1; h /= 2)
+                    for (int i = 0; i < h; ++i) {
+                        tm[i] = _mm256_max_ps(tm[2 * i], tm[2 * i + 1]);
+                        ts[i] = _mm256_add_ps(ts[2 * i], ts[2 * i + 1]);
+                    }
+                wm = tm[0];
+                ws = ts[0];
             }
             _mm256_store_ps(mx + pa, _mm256_max_ps(wm, _mm256_load_ps(mx + pa)));
             _mm256_store_ps(sm + pa, _mm256_add_ps(_mm256_load_ps(sm + pa), ws));
@@ -349,10 +359,10 @@ void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
         }
         pgn_sep_prepare(fx, vx + c * K * 3, K);
         int64_t t = 0;
-        for (; t + 4 <= K; t += 4) {
-            const float *rows[4] = {feat + (int64_t)nr[t] * Dp, feat + (int64_t)nr[t + 1] * Dp,
-                                    feat + (int64_t)nr[t + 2] * Dp, feat + (int64_t)nr[t + 3] * Dp};
-            sep_pass8(rows, 4, t, nta, fx, G, RV, G2, mx, sm);
+        for (; t + SEP_NT <= K; t += SEP_NT) {
+            const float *rows[SEP_NT];
+            for (int i = 0; i < SEP_NT; ++i) rows[i] = feat + (int64_t)nr[t + i] * Dp;
+            sep_pass8(rows, SEP_NT, t, nta, fx, G, RV, G2, mx, sm);
         }
         for (; t < K; ++t) {
             const float *rows[1] = {feat + (int64_t)nr[t] * Dp};
