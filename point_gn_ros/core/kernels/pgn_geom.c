@@ -75,8 +75,90 @@ static int64_t first_argmax(const float *v, int64_t n) {
 /* Farthest point sampling from a given start over SoA coordinates x, y, z (n each)
  * -> idx[0..m). min_d: scratch of n floats. Same rounding and ties (first maximum)
  * as the oracle's and numpy's loops. */
+#if defined(__AVX2__) && !defined(__AVX512F__)
+/* (value, index) pairs per lane: keep the larger value, on a tie the smaller index. */
+static inline void fps_merge(__m256 *bv, __m256i *bi, __m256 v, __m256i i) {
+    const __m256 gt = _mm256_cmp_ps(v, *bv, _CMP_GT_OQ);
+    const __m256i lt = _mm256_cmpgt_epi32(*bi, i);
+    const __m256 take = _mm256_or_ps(gt, _mm256_and_ps(_mm256_cmp_ps(v, *bv, _CMP_EQ_OQ),
+                                                       _mm256_castsi256_ps(lt)));
+    *bv = _mm256_blendv_ps(*bv, v, take);
+    *bi = _mm256_castps_si256(_mm256_blendv_ps(_mm256_castsi256_ps(*bi),
+                                               _mm256_castsi256_ps(i), take));
+}
+
+/* pgn_fps_from for n >= 32 on AVX2: the running (max, first index) kept per lane in four
+ * independent chains (a horizontal max and a branch per block of 16 were the cost),
+ * merged once per step. Same distances, same first maximum. */
+static void fps_from_avx2(const float *x, const float *y, const float *z, int64_t n,
+                          int64_t m, int64_t cur, int64_t *idx, float *min_d) {
+    const int64_t n32 = n / 32 * 32;
+    for (int64_t it = 0; it < m; ++it) {
+        idx[it] = cur;
+        const float px = x[cur], py = y[cur], pz = z[cur];
+        const __m256 vx = _mm256_set1_ps(px), vy = _mm256_set1_ps(py), vz = _mm256_set1_ps(pz);
+        __m256 bv[4];
+        __m256i bi[4], vi[4];
+        for (int j = 0; j < 4; ++j) {
+            bv[j] = _mm256_set1_ps(-1.0f);
+            bi[j] = _mm256_setzero_si256();
+            vi[j] = _mm256_add_epi32(_mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
+                                     _mm256_set1_epi32(8 * j));
+        }
+        const __m256i step = _mm256_set1_epi32(32);
+        for (int64_t i = 0; i < n32; i += 32) {
+            for (int j = 0; j < 4; ++j) {
+                const int64_t o = i + 8 * j;
+                const __m256 dx = _mm256_sub_ps(_mm256_loadu_ps(x + o), vx);
+                const __m256 dy = _mm256_sub_ps(_mm256_loadu_ps(y + o), vy);
+                const __m256 dz = _mm256_sub_ps(_mm256_loadu_ps(z + o), vz);
+                __m256 d = _mm256_mul_ps(dx, dx);
+                d = _mm256_add_ps(d, _mm256_mul_ps(dy, dy));
+                d = _mm256_add_ps(d, _mm256_mul_ps(dz, dz));
+                /* the first step starts from +inf in the oracle: min(inf, d) = d */
+                const __m256 md = it == 0 ? d : _mm256_min_ps(d, _mm256_loadu_ps(min_d + o));
+                _mm256_storeu_ps(min_d + o, md);
+                /* strictly greater: each lane keeps its first maximum */
+                const __m256 gt = _mm256_cmp_ps(md, bv[j], _CMP_GT_OQ);
+                bv[j] = _mm256_blendv_ps(bv[j], md, gt);
+                bi[j] = _mm256_castps_si256(_mm256_blendv_ps(_mm256_castsi256_ps(bi[j]),
+                                                             _mm256_castsi256_ps(vi[j]), gt));
+                vi[j] = _mm256_add_epi32(vi[j], step);
+            }
+        }
+        fps_merge(&bv[0], &bi[0], bv[1], bi[1]);
+        fps_merge(&bv[2], &bi[2], bv[3], bi[3]);
+        fps_merge(&bv[0], &bi[0], bv[2], bi[2]);
+        float v8[8];
+        int32_t i8[8];
+        _mm256_storeu_ps(v8, bv[0]);
+        _mm256_storeu_si256((__m256i *)i8, bi[0]);
+        float best = v8[0];
+        int64_t bix = i8[0];
+        for (int l = 1; l < 8; ++l)
+            if (v8[l] > best || (v8[l] == best && i8[l] < bix)) { best = v8[l]; bix = i8[l]; }
+        for (int64_t i = n32; i < n; ++i) {  /* the tail: indices above all others */
+            float dx = x[i] - px, dy = y[i] - py, dz = z[i] - pz;
+            float d = dx * dx;
+            d = d + dy * dy;
+            d = d + dz * dz;
+            float md = (it == 0 || d < min_d[i]) ? d : min_d[i];
+            min_d[i] = md;
+            if (md > best) { best = md; bix = i; }
+        }
+        cur = bix;
+    }
+}
+#endif
+
 void pgn_fps_from(const float *x, const float *y, const float *z, int64_t n, int64_t m,
                   int64_t cur, int64_t *idx, float *min_d) {
+#if defined(__AVX2__) && !defined(__AVX512F__)
+    if (n >= 32) {
+        fps_from_avx2(x, y, z, n, m, cur, idx, min_d);
+        return;
+    }
+#endif
     for (int64_t it = 0; it < m; ++it) {
         idx[it] = cur;
         const float px = x[cur], py = y[cur], pz = z[cur];
