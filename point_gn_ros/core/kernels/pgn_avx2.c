@@ -75,8 +75,8 @@ void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
  * neighbour instead of 8. B_a is exactly 0 where t > 125 (then its derived Gaussians are
  * below 1e-26), R is 0 below 2^-125 and at most 2^126.
  * Vectors: v = 0..2 L_a, 3..5 B_a, 6 T (n = 18 only: lanes (a, 16 + i) at 2a + i).
- * The feature of a lane is (row[ch] - cf[ch]) r (ch < D, lanes at st_v + l) or
- * cf[ch - D]: fma(row - cf, Rv, Cv) with Rv = r or 0 and Cv = 0 or cf[ch - D].
+ * The feature plus pe of a lane is (row[ch] - cf[ch]) r + pe (ch < D, lanes at st_v + l)
+ * or cf[ch - D] + pe: fma(row - cf, Rv, Cv + pe), Rv = r or 0 and Cv = 0 or cf[ch - D].
  * Per chunk of D18_CH neighbours, their Gaussians first (D18_NN neighbours' exps in
  * lockstep), then the max / sum pass. */
 #define D18_NV 7
@@ -205,6 +205,7 @@ static inline __attribute__((always_inline)) void d18_body(
     float pb[(D18_CH + D18_NN) * 8 * D18_NV] __attribute__((aligned(32)));  /* a chunk's pe */
     const float invk = 1.0f / (float)K;
     float *cv = acc + 64;  /* (NV, 8) per-centre Cv */
+    const int pure_l1 = 2 * D / 3 >= 16;  /* L_1 (channels n..n+7) all below D */
     for (int64_t c = 0; c < S; ++c) {
         const float *cf = feat + cidx[c] * Dp;
         const int32_t *nr = nb + c * K;
@@ -227,15 +228,20 @@ static inline __attribute__((always_inline)) void d18_body(
                 const float *row = feat + (int64_t)nr[t0 + i] * Dp;
                 const float *pi = pb + i * 8 * D18_NV;
                 for (int v = 0; v < NV; ++v) {
-                    __m256 f = _mm256_load_ps(cv + 8 * v);
-                    /* lanes with offsets: L_0, L_1, B_0 always; B_1 and T where n = 18 */
+                    const __m256 pe = _mm256_load_ps(pi + 8 * v);
+                    __m256 x;
+                    /* lanes with offsets: L_0, L_1, B_0 always; B_1 and T where n = 18;
+                     * offset lanes only (Cv = 0): L_0, B_0, and L_1 where n >= 16 */
                     if (v == 0 || v == 1 || v == 3 || (NV == 7 && (v == 4 || v == 6))) {
                         const __m256 e = _mm256_sub_ps(_mm256_loadu_ps(row + tb->st[v]),
                                                        _mm256_loadu_ps(cf + tb->st[v]));
-                        f = _mm256_fmadd_ps(e, _mm256_load_ps(tb->Rv[v]), f);
+                        const __m256 c = v == 0 || v == 3 || (v == 1 && pure_l1)
+                            ? pe : _mm256_add_ps(_mm256_load_ps(cv + 8 * v), pe);
+                        x = _mm256_fmadd_ps(e, _mm256_load_ps(tb->Rv[v]), c);
+                    } else {
+                        x = _mm256_add_ps(_mm256_load_ps(cv + 8 * v), pe);
                     }
-                    const __m256 pe = _mm256_load_ps(pi + 8 * v);
-                    const __m256 w = _mm256_mul_ps(_mm256_add_ps(f, pe), pe);
+                    const __m256 w = _mm256_mul_ps(x, pe);
                     mx[v] = _mm256_max_ps(mx[v], w);
                     sm[v] = _mm256_add_ps(sm[v], w);
                 }
