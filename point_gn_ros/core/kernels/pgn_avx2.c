@@ -314,9 +314,11 @@ static inline __attribute__((always_inline)) void sep_pass8(
                 if (any_off) {
                     /* lanes past D read on into the next row or the table's slack
                      * (pgn_encode.c allocates 16 floats more), finite: times 0 below.
-                     * ((row - g) r + pe) pe where ch < D, else (g + pe) pe, as one fma */
+                     * ((row - g) r + pe) pe where ch < D, else (g + pe) pe, as one fma
+                     * (axis 0: n <= D channels, all offsets, G2 = 0) */
                     const __m256 row = _mm256_loadu_ps(rows[i] + ch);
-                    const __m256 x = _mm256_fmadd_ps(_mm256_sub_ps(row, g), rv, _mm256_add_ps(g2, pe));
+                    const __m256 x = _mm256_fmadd_ps(_mm256_sub_ps(row, g), rv,
+                                                     a == 0 ? pe : _mm256_add_ps(g2, pe));
                     w[i] = _mm256_mul_ps(x, pe);
                 } else {
                     w[i] = _mm256_mul_ps(_mm256_add_ps(g, pe), pe);
