@@ -213,7 +213,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     const int64_t fsz = N * (D0 + PAD);
     float *featA = xalloc(sizeof(float) * (size_t)(fsz + 16));
     float *featB = xalloc(sizeof(float) * (size_t)(fsz + 16));
-    float *xyz = xalloc(sizeof(float) * (size_t)N * 3);
+    float *xyz = xalloc(sizeof(float) * ((size_t)N * 3 + 4));  /* + 4: offsets' 4-float loads */
     float *cxyz = xalloc(sizeof(float) * (size_t)N * 3);
     float *soa = xalloc(sizeof(float) * (size_t)N * 6);
     float *scratch = xalloc(sizeof(float) * (size_t)N);
@@ -285,10 +285,18 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             const float qx = cx[c], qy = cy[c], qz = cz[c];
             const int32_t *nr = nb + c * K;
             float *v = vx + c * K * 3;
+#if defined(PGN_AVX2)
+            /* 4 floats in, 4 out per neighbour: the 4th is the next point's x (xyz has 4
+             * floats of slack), overwritten by the next store (vx has slack too) */
+            const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
+            for (int64_t t = 0; t < K; ++t)
+                _mm_storeu_ps(v + t * 3, _mm_sub_ps(_mm_loadu_ps(xyz + (int64_t)nr[t] * 3), q4));
+#else
             for (int64_t t = 0; t < K; ++t) {
                 const float *pj = xyz + (int64_t)nr[t] * 3;
                 v[t * 3] = pj[0] - qx; v[t * 3 + 1] = pj[1] - qy; v[t * 3 + 2] = pj[2] - qz;
             }
+#endif
         }
         const int64_t nv = S * K * 3;
         for (int64_t i = 0; i < nv; i += 4096) {
