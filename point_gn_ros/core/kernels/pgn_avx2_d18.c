@@ -143,7 +143,7 @@ static inline __attribute__((always_inline)) void d18_body(
     const int64_t Dp = 32, D2p = padded(2 * D);
     float pb[(D18_CH + D18_NN) * 8 * D18_NV] __attribute__((aligned(32)));  /* a chunk's pe */
     const float invk = 1.0f / (float)K;
-    float *cv = acc + 64;  /* (NV, 8) per-centre Cv */
+    float cv[D18_NV * 8] __attribute__((aligned(32)));  /* (NV, 8) per-centre Cv */
     const int pure_l1 = 2 * D / 3 >= 16;  /* L_1 (channels n..n+7) all below D */
     for (int64_t c = 0; c < S; ++c) {
         const float *cf = feat + cidx[c] * Dp;
@@ -200,7 +200,7 @@ static inline __attribute__((always_inline)) void d18_body(
 }
 
 /* All S centres of stage 1 where pgn_d18_ok(D, q); cents: the n centres of one axis;
- * s = sqrt(-q log2 e); acc: 128 floats, 32-byte aligned. */
+ * s = sqrt(-q log2 e); acc: 56 floats, 32-byte aligned (the d32 kernels' 64 suffice). */
 void pgn_aggregate_d18_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, const float *cents, float s, float *out, float *acc) {
