@@ -216,8 +216,8 @@ def test_simd_build_matches_the_cpu() -> None:
 
 def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.ndarray,
                                       naive_real: np.ndarray) -> None:
-    # The AVX2 + FMA kernels (pgn_avx2.c: stage 1 in registers, separable stages, feature
-    # std; AVX2 kNN counting in pgn_geom.c) run only on CPUs with AVX2 and without AVX-512;
+    # The AVX2 + FMA kernels (pgn_avx2.c, pgn_avx2_d18.c: stage 1, separable stages, feature
+    # std; AVX2 FPS and kNN in pgn_geom.c) run only on CPUs with AVX2 and without AVX-512;
     # there the other oracle tests of this file exercise them too.
     _kernels_or_skip()
     if kernels.simd_width() != 8:
@@ -225,8 +225,9 @@ def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.n
                     'the CPU lacks AVX2 + FMA or has AVX-512)')
     fast = encoder.encode(torch.from_numpy(real_clouds)).numpy()
     _assert_close(fast, naive_real, 'avx2 modelnet')
-    # stage 1 in registers needs 16 < D <= 32: D = 18 and 30 besides the default 27
-    for init_dim in (18, 30):
+    # stage 1 in registers needs 16 < D <= 32: D = 18, 21 (derived Gaussians, no tail
+    # vector) and 30 (direct Gaussians) besides the default 27 (derived, with the tail)
+    for init_dim in (18, 21, 30):
         cfg = EncoderConfig(num_points=256, init_dim=init_dim, stages=2, k=40, sigma=0.4)
         xyz = torch.from_numpy(np.stack([prepare(c, n=cfg.num_points) for c in real_clouds[:2]]))
         _assert_close(PointGNEncoder(cfg).encode(xyz).numpy(),

@@ -7,15 +7,15 @@ with ctypes. ctypes releases the GIL during calls, so Python threads run
 clouds in parallel. No network, no Python headers, no torch headers.
 
 The stage loops have three builds, chosen at compile time by what -march=native enables:
-AVX-512 (pgn_avx512.c), AVX2 + FMA (pgn_avx2.c, CPUs without AVX-512) and portable C;
-`simd_width()` says which one runs.
+AVX-512 (pgn_avx512.c), AVX2 + FMA (pgn_avx2.c, pgn_avx2_d18.c; CPUs without AVX-512) and
+portable C; `simd_width()` says which one runs.
 
 pgn_geom.c and pgn_project.c are compiled without fast-math and with -ffp-contract=off
 (distances must round exactly like the oracle's; an index row's projection must not depend
-on the rows beside it); the stage files (pgn_stage.c, pgn_avx512.c,
-pgn_avx2.c, pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's libmvec);
-pgn_peak.c (roofline micro-benchmarks) without. The link step omits -ffast-math so that gcc does
-not add crtfastmath.o, which would flush denormals to zero process-wide.
+on the rows beside it); the stage files (pgn_stage.c, pgn_avx512.c, pgn_avx2.c,
+pgn_avx2_d18.c, pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's
+libmvec); pgn_peak.c (roofline micro-benchmarks) without. The link step omits -ffast-math so
+that gcc does not add crtfastmath.o, which would flush denormals to zero process-wide.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_stage.c': ['-ffast-math'],
             'pgn_avx512.c': ['-ffast-math'],
             'pgn_avx2.c': ['-ffast-math'],  # AVX2 + FMA stage loops (CPUs without AVX-512)
+            'pgn_avx2_d18.c': ['-ffast-math'],  # AVX2 stage 1 with derived Gaussians
             'pgn_encode.c': ['-ffast-math'],
             'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
             # the index's projection: row results must not depend on the batch

@@ -71,17 +71,21 @@ void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
  * by blends of P, P^2, P^4 multiplied in the same order as the AVX-512 masked multiplies.
  * AVX2 has no cheap masked store, so max and sum live in a per-axis padded layout (axis a
  * at a * 8M, lanes past its n centres computed and ignored) and a block never spills into
- * the next axis. G: per lane cf[ch] (ch < D) or cf[ch - D]; OFF: all-ones where ch < D. */
+ * the next axis. G: per lane cf[ch] (ch < D) or cf[ch - D]; RV: r where ch < D, else 0;
+ * G2: 0 where ch < D, else G. */
+#ifndef SEP_NT
+#define SEP_NT 8  /* neighbours per pass: one max / sum update per block */
+#endif
 static inline __attribute__((always_inline)) void sep_pass8(
         const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
-        const float *G, const float *OFF, __m256 vr, float *mx, float *sm) {
+        const float *G, const float *RV, const float *G2, float *mx, float *sm) {
     const int64_t n = fx->n, M = fx->M;
     const __m256 one = _mm256_set1_ps(1.0f);
     const __m256 b1 = _mm256_castsi256_ps(_mm256_setr_epi32(0, -1, 0, -1, 0, -1, 0, -1));
     const __m256 b2 = _mm256_castsi256_ps(_mm256_setr_epi32(0, 0, -1, -1, 0, 0, -1, -1));
     const __m256 b4 = _mm256_castsi256_ps(_mm256_setr_epi32(0, 0, 0, 0, -1, -1, -1, -1));
     for (int a = 0; a < 3; ++a) {
-        __m256 e[4];
+        __m256 e[SEP_NT];
         for (int i = 0; i < nt; ++i) {
             const int64_t ta = 3 * (t0 + i) + a;
             const __m256 p1 = _mm256_blendv_ps(one, _mm256_set1_ps(fx->E[1 * nta + ta]), b1);
@@ -93,28 +97,37 @@ static inline __attribute__((always_inline)) void sep_pass8(
             const int64_t ch = a * n + 8 * m, pa = (a * M + m) * 8;
             const __m256 T = _mm256_loadu_ps(fx->T + 8 * m);
             const __m256 g = _mm256_load_ps(G + pa);
-            const __m256 off = _mm256_load_ps(OFF + pa);
-            const int any_off = !_mm256_testz_ps(off, off);
-            __m256 w[4];
+            const __m256 rv = _mm256_load_ps(RV + pa), g2 = _mm256_load_ps(G2 + pa);
+            const int any_off = !_mm256_testz_si256(_mm256_castps_si256(rv),
+                                                    _mm256_castps_si256(rv));
+            __m256 w[SEP_NT];
             for (int i = 0; i < nt; ++i) {
                 const __m256 am = _mm256_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]);
                 const __m256 pe = _mm256_mul_ps(am, _mm256_mul_ps(T, e[i]));
                 if (any_off) {
                     /* lanes past D read on into the next row or the table's slack
-                     * (pgn_encode.c allocates 16 floats more): blended away below */
+                     * (pgn_encode.c allocates 16 floats more), finite: times 0 below.
+                     * ((row - g) r + pe) pe where ch < D, else (g + pe) pe, as one fma
+                     * (axis 0: n <= D channels, all offsets, G2 = 0) */
                     const __m256 row = _mm256_loadu_ps(rows[i] + ch);
-                    /* ((row - g) r + pe) pe where ch < D, else (g + pe) pe */
-                    const __m256 x = _mm256_blendv_ps(
-                        _mm256_add_ps(g, pe), _mm256_fmadd_ps(_mm256_sub_ps(row, g), vr, pe), off);
+                    const __m256 x = _mm256_fmadd_ps(_mm256_sub_ps(row, g), rv,
+                                                     a == 0 ? pe : _mm256_add_ps(g2, pe));
                     w[i] = _mm256_mul_ps(x, pe);
                 } else {
                     w[i] = _mm256_mul_ps(_mm256_add_ps(g, pe), pe);
                 }
             }
             __m256 wm = w[0], ws = w[0];
-            if (nt == 4) {
-                wm = _mm256_max_ps(_mm256_max_ps(w[0], w[1]), _mm256_max_ps(w[2], w[3]));
-                ws = _mm256_add_ps(_mm256_add_ps(w[0], w[1]), _mm256_add_ps(w[2], w[3]));
+            if (nt == SEP_NT) {  /* pairwise trees */
+                __m256 tm[SEP_NT], ts[SEP_NT];
+                for (int i = 0; i < SEP_NT; ++i) tm[i] = ts[i] = w[i];
+                for (int h = SEP_NT / 2; h >= 1; h /= 2)
+                    for (int i = 0; i < h; ++i) {
+                        tm[i] = _mm256_max_ps(tm[2 * i], tm[2 * i + 1]);
+                        ts[i] = _mm256_add_ps(ts[2 * i], ts[2 * i + 1]);
+                    }
+                wm = tm[0];
+                ws = ts[0];
             }
             _mm256_store_ps(mx + pa, _mm256_max_ps(wm, _mm256_load_ps(mx + pa)));
             _mm256_store_ps(sm + pa, _mm256_add_ps(_mm256_load_ps(sm + pa), ws));
@@ -122,20 +135,18 @@ static inline __attribute__((always_inline)) void sep_pass8(
     }
 }
 
-/* All S centres of a separable stage (fx->B == 8). mx, sm, G, OFF, SRC: 3 * 8 * fx->M
+/* All S centres of a separable stage (fx->B == 8). mx, sm, G, RV, G2, SRC: 3 * 8 * fx->M
  * floats (SRC: int32) each, 32-byte aligned. */
 void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
-                            float r, float *out, float *mx, float *sm, float *G, float *OFF,
-                            int32_t *SRC, sep_t *fx) {
+                            float r, float *out, float *mx, float *sm, float *G, float *RV,
+                            float *G2, int32_t *SRC, sep_t *fx) {
     const int64_t Dp = padded(D), D2 = 2 * D, D2p = padded(D2), nta = 3 * K;
     const int64_t n = fx->n, M = fx->M, np = 3 * 8 * M;
     const float invk = 1.0f / (float)K;
-    const __m256 vr = _mm256_set1_ps(r);
     for (int64_t p = 0; p < np; ++p) {
         const int64_t a = p / (8 * M), j = p % (8 * M), ch = a * n + j;
-        OFF[p] = 0.0f;
-        if (j < n && ch < D) memset(OFF + p, 0xff, sizeof(float));
+        RV[p] = j < n && ch < D ? r : 0.0f;
         SRC[p] = j < n ? (int32_t)(ch < D ? ch : ch - D) : -1;  /* G's source channel */
     }
     for (int64_t c = 0; c < S; ++c) {
@@ -143,19 +154,20 @@ void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
         const int32_t *nr = nb + c * K;
         for (int64_t p = 0; p < np; ++p) {
             G[p] = SRC[p] >= 0 ? cf[SRC[p]] : 0.0f;
+            G2[p] = RV[p] != 0.0f ? 0.0f : G[p];
             mx[p] = -INFINITY;
             sm[p] = 0.0f;
         }
         pgn_sep_prepare(fx, vx + c * K * 3, K);
         int64_t t = 0;
-        for (; t + 4 <= K; t += 4) {
-            const float *rows[4] = {feat + (int64_t)nr[t] * Dp, feat + (int64_t)nr[t + 1] * Dp,
-                                    feat + (int64_t)nr[t + 2] * Dp, feat + (int64_t)nr[t + 3] * Dp};
-            sep_pass8(rows, 4, t, nta, fx, G, OFF, vr, mx, sm);
+        for (; t + SEP_NT <= K; t += SEP_NT) {
+            const float *rows[SEP_NT];
+            for (int i = 0; i < SEP_NT; ++i) rows[i] = feat + (int64_t)nr[t + i] * Dp;
+            sep_pass8(rows, SEP_NT, t, nta, fx, G, RV, G2, mx, sm);
         }
         for (; t < K; ++t) {
             const float *rows[1] = {feat + (int64_t)nr[t] * Dp};
-            sep_pass8(rows, 1, t, nta, fx, G, OFF, vr, mx, sm);
+            sep_pass8(rows, 1, t, nta, fx, G, RV, G2, mx, sm);
         }
         float *o = out + c * D2p;
         for (int a = 0; a < 3; ++a)

@@ -91,6 +91,8 @@ typedef struct agg_job {
     const float *ccs;
     const int32_t *lane_axis;
     float sc;
+    const float *cents;   /* this stage's centres of one axis (d18) */
+    int d18;
 #endif
 } agg_job;
 
@@ -109,6 +111,11 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     }
 #endif
 #if defined(PGN_AVX2) && !defined(PGN_NO_D32)
+    if (j->d18) {
+        pgn_aggregate_d18_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cents,
+                               j->sc, out, j->mx[tid]);
+        return;
+    }
     if (j->d32) {
         pgn_aggregate_d32_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs,
                                j->lane_axis, j->sc, out, j->mx[tid]);
@@ -116,9 +123,9 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     }
 #endif
 #if defined(PGN_AVX2) && !defined(PGN_NO_SEP256)
-    if (j->use_fx) {  /* G, OFF, SRC in the pe buffers, which this path does not use */
+    if (j->use_fx) {  /* G, RV, G2, SRC in the pe buffers, which this path does not use */
         pgn_aggregate_sep_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
-                               j->sm[tid], j->pe[tid], j->pe[tid] + j->PS,
+                               j->sm[tid], j->pe[tid], j->pe[tid] + j->PS, j->pe[tid] + 3 * j->PS,
                                (int32_t *)(j->pe[tid] + 2 * j->PS), &j->fx[tid]);
         return;
     }
@@ -206,7 +213,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     const int64_t fsz = N * (D0 + PAD);
     float *featA = xalloc(sizeof(float) * (size_t)(fsz + 16));
     float *featB = xalloc(sizeof(float) * (size_t)(fsz + 16));
-    float *xyz = xalloc(sizeof(float) * (size_t)N * 3);
+    float *xyz = xalloc(sizeof(float) * ((size_t)N * 3 + 4));  /* + 4: offsets' 4-float loads */
     float *cxyz = xalloc(sizeof(float) * (size_t)N * 3);
     float *soa = xalloc(sizeof(float) * (size_t)N * 6);
     float *scratch = xalloc(sizeof(float) * (size_t)N);
@@ -278,10 +285,18 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             const float qx = cx[c], qy = cy[c], qz = cz[c];
             const int32_t *nr = nb + c * K;
             float *v = vx + c * K * 3;
+#if defined(PGN_AVX2)
+            /* 4 floats in, 4 out per neighbour: the 4th is the next point's x (xyz has 4
+             * floats of slack), overwritten by the next store (vx has slack too) */
+            const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
+            for (int64_t t = 0; t < K; ++t)
+                _mm_storeu_ps(v + t * 3, _mm_sub_ps(_mm_loadu_ps(xyz + (int64_t)nr[t] * 3), q4));
+#else
             for (int64_t t = 0; t < K; ++t) {
                 const float *pj = xyz + (int64_t)nr[t] * 3;
                 v[t * 3] = pj[0] - qx; v[t * 3 + 1] = pj[1] - qy; v[t * 3 + 2] = pj[2] - qz;
             }
+#endif
         }
         const int64_t nv = S * K * 3;
         for (int64_t i = 0; i < nv; i += 4096) {
@@ -439,6 +454,11 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             }
             job.d32 = 1;
             job.ccs = ccs; job.lane_axis = lane_axis; job.sc = sc;
+#if !defined(PGN_NO_D18)
+            /* 4 exps per neighbour instead of 8 where the factors stay in range */
+            job.d18 = pgn_d18_ok(D, q);
+            job.cents = cents;
+#endif
         }
 #endif
         par_run(par, &job);

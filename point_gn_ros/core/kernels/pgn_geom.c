@@ -75,8 +75,90 @@ static int64_t first_argmax(const float *v, int64_t n) {
 /* Farthest point sampling from a given start over SoA coordinates x, y, z (n each)
  * -> idx[0..m). min_d: scratch of n floats. Same rounding and ties (first maximum)
  * as the oracle's and numpy's loops. */
+#if defined(__AVX2__) && !defined(__AVX512F__)
+/* (value, index) pairs per lane: keep the larger value, on a tie the smaller index. */
+static inline void fps_merge(__m256 *bv, __m256i *bi, __m256 v, __m256i i) {
+    const __m256 gt = _mm256_cmp_ps(v, *bv, _CMP_GT_OQ);
+    const __m256i lt = _mm256_cmpgt_epi32(*bi, i);
+    const __m256 take = _mm256_or_ps(gt, _mm256_and_ps(_mm256_cmp_ps(v, *bv, _CMP_EQ_OQ),
+                                                       _mm256_castsi256_ps(lt)));
+    *bv = _mm256_blendv_ps(*bv, v, take);
+    *bi = _mm256_castps_si256(_mm256_blendv_ps(_mm256_castsi256_ps(*bi),
+                                               _mm256_castsi256_ps(i), take));
+}
+
+/* pgn_fps_from for n >= 32 on AVX2: the running (max, first index) kept per lane in four
+ * independent chains (a horizontal max and a branch per block of 16 were the cost),
+ * merged once per step. Same distances, same first maximum. */
+static void fps_from_avx2(const float *x, const float *y, const float *z, int64_t n,
+                          int64_t m, int64_t cur, int64_t *idx, float *min_d) {
+    const int64_t n32 = n / 32 * 32;
+    for (int64_t it = 0; it < m; ++it) {
+        idx[it] = cur;
+        const float px = x[cur], py = y[cur], pz = z[cur];
+        const __m256 vx = _mm256_set1_ps(px), vy = _mm256_set1_ps(py), vz = _mm256_set1_ps(pz);
+        __m256 bv[4];
+        __m256i bi[4], vi[4];
+        for (int j = 0; j < 4; ++j) {
+            bv[j] = _mm256_set1_ps(-1.0f);
+            bi[j] = _mm256_setzero_si256();
+            vi[j] = _mm256_add_epi32(_mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
+                                     _mm256_set1_epi32(8 * j));
+        }
+        const __m256i step = _mm256_set1_epi32(32);
+        for (int64_t i = 0; i < n32; i += 32) {
+            for (int j = 0; j < 4; ++j) {
+                const int64_t o = i + 8 * j;
+                const __m256 dx = _mm256_sub_ps(_mm256_loadu_ps(x + o), vx);
+                const __m256 dy = _mm256_sub_ps(_mm256_loadu_ps(y + o), vy);
+                const __m256 dz = _mm256_sub_ps(_mm256_loadu_ps(z + o), vz);
+                __m256 d = _mm256_mul_ps(dx, dx);
+                d = _mm256_add_ps(d, _mm256_mul_ps(dy, dy));
+                d = _mm256_add_ps(d, _mm256_mul_ps(dz, dz));
+                /* the first step starts from +inf in the oracle: min(inf, d) = d */
+                const __m256 md = it == 0 ? d : _mm256_min_ps(d, _mm256_loadu_ps(min_d + o));
+                _mm256_storeu_ps(min_d + o, md);
+                /* strictly greater: each lane keeps its first maximum */
+                const __m256 gt = _mm256_cmp_ps(md, bv[j], _CMP_GT_OQ);
+                bv[j] = _mm256_blendv_ps(bv[j], md, gt);
+                bi[j] = _mm256_castps_si256(_mm256_blendv_ps(_mm256_castsi256_ps(bi[j]),
+                                                             _mm256_castsi256_ps(vi[j]), gt));
+                vi[j] = _mm256_add_epi32(vi[j], step);
+            }
+        }
+        fps_merge(&bv[0], &bi[0], bv[1], bi[1]);
+        fps_merge(&bv[2], &bi[2], bv[3], bi[3]);
+        fps_merge(&bv[0], &bi[0], bv[2], bi[2]);
+        float v8[8];
+        int32_t i8[8];
+        _mm256_storeu_ps(v8, bv[0]);
+        _mm256_storeu_si256((__m256i *)i8, bi[0]);
+        float best = v8[0];
+        int64_t bix = i8[0];
+        for (int l = 1; l < 8; ++l)
+            if (v8[l] > best || (v8[l] == best && i8[l] < bix)) { best = v8[l]; bix = i8[l]; }
+        for (int64_t i = n32; i < n; ++i) {  /* the tail: indices above all others */
+            float dx = x[i] - px, dy = y[i] - py, dz = z[i] - pz;
+            float d = dx * dx;
+            d = d + dy * dy;
+            d = d + dz * dz;
+            float md = (it == 0 || d < min_d[i]) ? d : min_d[i];
+            min_d[i] = md;
+            if (md > best) { best = md; bix = i; }
+        }
+        cur = bix;
+    }
+}
+#endif
+
 void pgn_fps_from(const float *x, const float *y, const float *z, int64_t n, int64_t m,
                   int64_t cur, int64_t *idx, float *min_d) {
+#if defined(__AVX2__) && !defined(__AVX512F__)
+    if (n >= 32) {
+        fps_from_avx2(x, y, z, n, m, cur, idx, min_d);
+        return;
+    }
+#endif
     for (int64_t it = 0; it < m; ++it) {
         idx[it] = cur;
         const float px = x[cur], py = y[cur], pz = z[cur];
@@ -181,15 +263,25 @@ static inline int64_t count_le(const float *d, int64_t n, float tau) {
         c += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d + i + 16), vt, _CMP_LE_OQ));
     }
 #elif defined(__AVX2__)
-    /* AVX2: the sign bits of the compare as a byte mask, popcounted */
+    /* AVX2: per-lane int32 counters (a true compare is -1: subtract it), four chains,
+     * summed once (movemask + popcount per vector was slower on Zen 3) */
     const __m256 vt = _mm256_set1_ps(tau);
+    __m256i c0 = _mm256_setzero_si256(), c1 = c0, c2 = c0, c3 = c0;
     for (; i + 32 <= n; i += 32) {
-        const int m0 = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_loadu_ps(d + i), vt, _CMP_LE_OQ));
-        const int m1 = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_loadu_ps(d + i + 8), vt, _CMP_LE_OQ));
-        const int m2 = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_loadu_ps(d + i + 16), vt, _CMP_LE_OQ));
-        const int m3 = _mm256_movemask_ps(_mm256_cmp_ps(_mm256_loadu_ps(d + i + 24), vt, _CMP_LE_OQ));
-        c += __builtin_popcount((unsigned)(m0 | m1 << 8 | m2 << 16 | m3 << 24));
+        c0 = _mm256_sub_epi32(c0, _mm256_castps_si256(
+            _mm256_cmp_ps(_mm256_loadu_ps(d + i), vt, _CMP_LE_OQ)));
+        c1 = _mm256_sub_epi32(c1, _mm256_castps_si256(
+            _mm256_cmp_ps(_mm256_loadu_ps(d + i + 8), vt, _CMP_LE_OQ)));
+        c2 = _mm256_sub_epi32(c2, _mm256_castps_si256(
+            _mm256_cmp_ps(_mm256_loadu_ps(d + i + 16), vt, _CMP_LE_OQ)));
+        c3 = _mm256_sub_epi32(c3, _mm256_castps_si256(
+            _mm256_cmp_ps(_mm256_loadu_ps(d + i + 24), vt, _CMP_LE_OQ)));
     }
+    const __m256i cs = _mm256_add_epi32(_mm256_add_epi32(c0, c1), _mm256_add_epi32(c2, c3));
+    __m128i h = _mm_add_epi32(_mm256_castsi256_si128(cs), _mm256_extracti128_si256(cs, 1));
+    h = _mm_add_epi32(h, _mm_shuffle_epi32(h, 0x4e));
+    h = _mm_add_epi32(h, _mm_shuffle_epi32(h, 0xb1));
+    c = _mm_cvtsi128_si32(h);
 #endif
     for (; i < n; ++i) c += d[i] <= tau;
     return c;
@@ -240,11 +332,10 @@ static int64_t split3(const float *d, int64_t n, float lo, float hi, int32_t *a,
         _mm256_storeu_si256((__m256i *)(a + ca), _mm256_permutevar8x32_epi32(
             idx, _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)compress_lut[ma]))));
         ca += __builtin_popcount(ma);
-        if (mb) {  /* the middle band is a few points: usually empty */
-            _mm256_storeu_si256((__m256i *)(b + cb), _mm256_permutevar8x32_epi32(
-                idx, _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)compress_lut[mb]))));
-            cb += __builtin_popcount(mb);
-        }
+        /* the middle band (a few points, scattered: a branch on it mispredicts) */
+        _mm256_storeu_si256((__m256i *)(b + cb), _mm256_permutevar8x32_epi32(
+            idx, _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)compress_lut[mb]))));
+        cb += __builtin_popcount(mb);
         idx = _mm256_add_epi32(idx, step);
     }
 #endif
