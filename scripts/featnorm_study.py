@@ -233,11 +233,15 @@ def main() -> None:
     p.add_argument('--subset', type=int, default=3, help='every N-th object (default 3)')
     p.add_argument('--dims', type=int, nargs='+', default=None,
                    help='PCA widths to choose from (aligned: 0 = all, the default)')
+    p.add_argument('--alphas', type=float, nargs='+', default=None,
+                   help="whitening shrinkage grid (default: the setting's)")
     p.add_argument('--variants', nargs='+', default=['base', 'pow0.5'])
     p.add_argument('--out', default=None, help='append one JSON line per variant here')
     args = p.parse_args()
     torch.set_num_threads(1)
     feats, labels, groups, cfg, grid, sources = load_setting(args)
+    if args.alphas:
+        grid['alphas'] = tuple(args.alphas)
     table = variants(cfg)
     base_correct = None
     print(f'{args.setting}: {len(labels)} entries, grid {grid}', flush=True)
