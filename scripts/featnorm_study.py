@@ -17,6 +17,11 @@ standard error (per-object correctness, same folds).
 
     python scripts/featnorm_study.py ../shared/datasets/modelnet40_1024 --cache /work/cache \
         --setting aligned --subset 3 --variants base pow0.5 blockl2
+
+Two-encoder concatenation (issue 8): a variant `cat:KEY=VAL,...` appends the raw features
+of the same objects encoded by a second EncoderConfig (the setting's config with these
+overrides, e.g. `cat:sigma=0.5`, `cat:k=60,sigma=0.4`, `cat:init_dim=18,stages=3`) to the
+base features; `only:KEY=VAL,...` uses the second encoder's features alone. Not for scans.
 """
 
 from __future__ import annotations
@@ -36,7 +41,8 @@ from point_gn_ros.bank.builder import encode_dataset
 from point_gn_ros.bank.transform import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.datasets import open_dataset
-from point_gn_ros.recognizer import make_encoder
+from point_gn_ros.core.sampling import rotate_z
+from point_gn_ros.recognizer import encode_clouds, make_encoder
 
 
 def block_slices(cfg: EncoderConfig) -> list[slice]:
@@ -148,17 +154,60 @@ def paired_diff(a: np.ndarray, b: np.ndarray, groups: np.ndarray | None) -> tupl
     return float(mean), float(np.sqrt(var))
 
 
+def parse_overrides(spec: str) -> dict[str, int | float]:
+    """'k=60,sigma=0.4' -> {'k': 60, 'sigma': 0.4} (EncoderConfig keys)."""
+    out: dict[str, int | float] = {}
+    for item in spec.split(','):
+        key, val = item.split('=')
+        out[key] = float(val) if key == 'sigma' else int(val)
+    return out
+
+
+def second_features(args: argparse.Namespace, cfg: EncoderConfig, spec: str,
+                    sources: np.ndarray) -> torch.Tensor:
+    """The complete train objects `sources` (M,) encoded by cfg + overrides: -> (M, D2).
+
+    aligned: the stored objects (encode_dataset's cache); yaw: each object at the same random
+    yaw as ViewsDataset(random_yaw=True, seed 0) gives its complete item (first angle of its
+    draw), cached here under the config's hash.
+    """
+    from dataclasses import replace
+    cfg2 = replace(cfg, **parse_overrides(spec))
+    train = open_dataset(args.dataset, split='train')
+    if args.setting == 'aligned':
+        feats = encode_dataset(train, make_encoder(cfg2), cache_dir=Path(args.cache),
+                               progress=False)
+        return feats[torch.from_numpy(sources)]
+    import hashlib
+    key = hashlib.sha1(repr(('concat_yaw_full', len(train), sorted(cfg2.to_dict().items()))
+                            ).encode()).hexdigest()[:16]
+    path = Path(args.cache) / f'concat_study_{key}.npy'
+    if not path.is_file():
+        def clouds():  # noqa: ANN202
+            for i in range(len(train)):
+                # ViewsDataset draws one angle per item; item 0 is the complete object
+                a = np.random.default_rng([0, i, 0xA11]).uniform(0, 2 * np.pi, 5)[0]
+                yield rotate_z(train[i][0], a)
+        np.save(path, encode_clouds(clouds(), make_encoder(cfg2), total=len(train)).numpy())
+    return torch.from_numpy(np.load(path, allow_pickle=False))[torch.from_numpy(sources)]
+
+
 def load_setting(args: argparse.Namespace) -> tuple[torch.Tensor, np.ndarray, np.ndarray | None,
-                                                     EncoderConfig, dict]:
-    """-> raw features (M, D), labels (M,), groups (M,) or None, encoder config, select grid."""
+                                                     EncoderConfig, dict, np.ndarray]:
+    """Features of one setting.
+
+    -> raw features (M, D), labels (M,), groups (M,) or None, encoder config, select grid,
+    source train object of each row (M,).
+    """
     train = open_dataset(args.dataset, split='train')
     cache = Path(args.cache)
     if args.setting == 'aligned':
         cfg = EncoderConfig()
         feats = encode_dataset(train, make_encoder(cfg), cache_dir=cache, progress=False)
         rows = np.arange(0, len(train), args.subset)
-        grid = dict(dims_options=(None,))
-        return feats[torch.from_numpy(rows)], np.asarray(train.labels)[rows], None, cfg, grid
+        grid = dict(dims_options=tuple(d or None for d in (args.dims or [0])))
+        return (feats[torch.from_numpy(rows)], np.asarray(train.labels)[rows], None, cfg, grid,
+                rows)
     from point_gn_ros.core.views import VIEW_PROTOCOLS
     from point_gn_ros.datasets.views import ViewsDataset
     cfg = EncoderConfig(yaw_align=True)
@@ -173,7 +222,7 @@ def load_setting(args: argparse.Namespace) -> tuple[torch.Tensor, np.ndarray, np
                                                  else (512, 640))))
     groups = np.asarray(ds.groups)[rows] if args.setting == 'scans' else None
     return (feats[torch.from_numpy(rows)], np.asarray(ds.labels)[rows].astype(np.int64),
-            groups, cfg, grid)
+            groups, cfg, grid, np.asarray(ds.groups)[rows])
 
 
 def main() -> None:
@@ -182,18 +231,28 @@ def main() -> None:
     p.add_argument('--cache', required=True)
     p.add_argument('--setting', choices=('aligned', 'yaw', 'scans'), default='aligned')
     p.add_argument('--subset', type=int, default=3, help='every N-th object (default 3)')
-    p.add_argument('--dims', type=int, nargs='+', default=None)
+    p.add_argument('--dims', type=int, nargs='+', default=None,
+                   help='PCA widths to choose from (aligned: 0 = all, the default)')
+    p.add_argument('--alphas', type=float, nargs='+', default=None,
+                   help="whitening shrinkage grid (default: the setting's)")
     p.add_argument('--variants', nargs='+', default=['base', 'pow0.5'])
     p.add_argument('--out', default=None, help='append one JSON line per variant here')
     args = p.parse_args()
     torch.set_num_threads(1)
-    feats, labels, groups, cfg, grid = load_setting(args)
+    feats, labels, groups, cfg, grid, sources = load_setting(args)
+    if args.alphas:
+        grid['alphas'] = tuple(args.alphas)
     table = variants(cfg)
     base_correct = None
     print(f'{args.setting}: {len(labels)} entries, grid {grid}', flush=True)
     for name in args.variants:
         t0 = time.process_time()
-        x = table[name](feats.float())
+        if name.startswith(('cat:', 'only:')):
+            kind, spec = name.split(':', 1)
+            f2 = second_features(args, cfg, spec, sources).float()
+            x = torch.cat([feats.float(), f2], 1) if kind == 'cat' else f2
+        else:
+            x = table[name](feats.float())
         _Weighted.weights = _block_weights(name, block_slices(cfg), feats.shape[1])
         with mock.patch.object(selection, 'FeatureTransform', _Weighted):
             sel = selection.select(x, labels, 40, standardize_options=('standardize',),
