@@ -72,6 +72,20 @@ static int64_t first_argmax(const float *v, int64_t n) {
     return bi;
 }
 
+/* One FPS step's update of point i's distance to the chosen set (scalar loops): the
+ * oracle's rounding ((dx^2 + dy^2) + dz^2, no contraction); the first step starts from
+ * +inf in the oracle: min(inf, d) = d. Returns the new min_d[i]. */
+static inline float fps_update(const float *x, const float *y, const float *z, int64_t i,
+                               float px, float py, float pz, int64_t it, float *min_d) {
+    float dx = x[i] - px, dy = y[i] - py, dz = z[i] - pz;
+    float d = dx * dx;
+    d = d + dy * dy;
+    d = d + dz * dz;
+    float md = (it == 0 || d < min_d[i]) ? d : min_d[i];
+    min_d[i] = md;
+    return md;
+}
+
 /* Farthest point sampling from a given start over SoA coordinates x, y, z (n each)
  * -> idx[0..m). min_d: scratch of n floats. Same rounding and ties (first maximum)
  * as the oracle's and numpy's loops. */
@@ -138,12 +152,7 @@ static void fps_from_avx2(const float *x, const float *y, const float *z, int64_
         for (int l = 1; l < 8; ++l)
             if (v8[l] > best || (v8[l] == best && i8[l] < bix)) { best = v8[l]; bix = i8[l]; }
         for (int64_t i = n32; i < n; ++i) {  /* the tail: indices above all others */
-            float dx = x[i] - px, dy = y[i] - py, dz = z[i] - pz;
-            float d = dx * dx;
-            d = d + dy * dy;
-            d = d + dz * dz;
-            float md = (it == 0 || d < min_d[i]) ? d : min_d[i];
-            min_d[i] = md;
+            const float md = fps_update(x, y, z, i, px, py, pz, it, min_d);
             if (md > best) { best = md; bix = i; }
         }
         cur = bix;
@@ -182,12 +191,7 @@ void pgn_fps_from(const float *x, const float *y, const float *z, int64_t n, int
         }
         int64_t tail_best = -1;
         for (; i < n; ++i) {
-            float dx = x[i] - px, dy = y[i] - py, dz = z[i] - pz;
-            float d = dx * dx;
-            d = d + dy * dy;
-            d = d + dz * dz;
-            float md = (it == 0 || d < min_d[i]) ? d : min_d[i];
-            min_d[i] = md;
+            const float md = fps_update(x, y, z, i, px, py, pz, it, min_d);
             if (md > best) { best = md; tail_best = i; }
         }
         if (tail_best >= 0) {
