@@ -45,16 +45,11 @@ def test_gate_tells_two_populations_apart_and_validates_its_arrays() -> None:
         Gate.fit(feats, np.zeros(400, bool))
 
 
-@pytest.fixture(scope='module')
-def tree(three_class_tree: Path) -> Path:
-    return three_class_tree
-
-
-def test_sections_bank_cli_build_info_eval_enroll(tree: Path, tmp_path: Path,
+def test_sections_bank_cli_build_info_eval_enroll(three_class_tree: Path, tmp_path: Path,
                                                   capsys: pytest.CaptureFixture) -> None:
     path = tmp_path / 'sections.npz'
-    assert main(['bank', 'build', str(tree), '--split', 'train', '--folds', '2', '--yaw-align',
-                 '--views', '2', '--sections', '--dtype', 'int8', '--dims', '8',
+    assert main(['bank', 'build', str(three_class_tree), '--split', 'train', '--folds', '2',
+                 '--yaw-align', '--views', '2', '--sections', '--dtype', 'int8', '--dims', '8',
                  '--views-dims', '6', '-o', str(path)]) == 0
     capsys.readouterr()
     assert main(['bank', 'info', str(path)]) == 0
@@ -68,11 +63,12 @@ def test_sections_bank_cli_build_info_eval_enroll(tree: Path, tmp_path: Path,
         assert z['features'].dtype == np.int8 and z['views_features'].dtype == np.int8
     assert bank.views.meta['selection']['cv_grouped']
     for extra in (['--single-view', '--seed', '3'], ['--random-yaw', '1']):
-        assert main(['eval', str(path), str(tree), '--split', 'test', '--json', *extra]) == 0
+        assert main(['eval', str(path), str(three_class_tree), '--split', 'test', '--json',
+                     *extra]) == 0
         assert json.loads(capsys.readouterr().out)['count'] == 12
     # probabilities are a mixture of the sections: rows sum to 1
     enc = make_encoder(bank.config)
-    clouds = [np.load(f) for f in sorted((tree / 'test' / 'lamp').glob('*.npy'))]
+    clouds = [np.load(f) for f in sorted((three_class_tree / 'test' / 'lamp').glob('*.npy'))]
     feats = encode_clouds(clouds, enc)
     prob = Classifier(bank).scores(feats)
     np.testing.assert_allclose(prob.sum(1).numpy(), 1.0, atol=1e-5)
@@ -98,14 +94,14 @@ def test_sections_bank_cli_build_info_eval_enroll(tree: Path, tmp_path: Path,
         FeatureBank.load(tmp_path / 'nogate.npz')
 
 
-def test_a_section_the_gate_all_but_excludes_is_not_searched(tree: Path) -> None:
+def test_a_section_the_gate_all_but_excludes_is_not_searched(three_class_tree: Path) -> None:
     """Rows with a gate weight < GATE_SKIP skip that section; the mixture moves by < 1e-6."""
     from point_gn_ros.bank.classifier import GATE_SKIP
     from point_gn_ros.core.views import simulate_view
 
     bank = FeatureBank.load(None)                  # the shipped two-section default
     clf = Classifier(bank)
-    clouds = [np.load(f) for f in sorted((tree / 'test').glob('*/*.npy'))]
+    clouds = [np.load(f) for f in sorted((three_class_tree / 'test').glob('*/*.npy'))]
     scans = [simulate_view(c, seed=i).points for i, c in enumerate(clouds)]
     feats = encode_clouds(clouds + scans, make_encoder(bank.config))
     p_scan = clf.gate.scan_probability(feats)
