@@ -34,8 +34,12 @@ def make_encoder(cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu',
                  naive: bool | None = None, threads: int | None = None) -> Encoder:
     """The fast encoder, or the naive oracle if asked (or POINT_GN_NAIVE=1).
 
-    threads: worker threads of the fast encoder (default: every usable CPU).
+    threads: worker threads of the fast encoder (default: every usable CPU). A
+    configuration with extra_sigmas gets one such encoder per sigma (core/multiscale.py).
     """
+    if cfg.extra_sigmas:
+        from point_gn_ros.core.multiscale import MultiScaleEncoder
+        return MultiScaleEncoder(cfg, lambda c: make_encoder(c, device, naive, threads))
     if naive is None:
         naive = os.environ.get('POINT_GN_NAIVE', '') == '1'
     if not naive:

@@ -21,7 +21,7 @@ standard error (per-object correctness, same folds).
 Two-encoder concatenation (issue 8): a variant `cat:KEY=VAL,...` appends the raw features
 of the same objects encoded by a second EncoderConfig (the setting's config with these
 overrides, e.g. `cat:sigma=0.5`, `cat:k=60,sigma=0.4`, `cat:init_dim=18,stages=3`) to the
-base features; `only:KEY=VAL,...` uses the second encoder's features alone. Not for scans.
+base features; `only:KEY=VAL,...` uses the second encoder's features alone.
 """
 
 from __future__ import annotations
@@ -164,8 +164,11 @@ def parse_overrides(spec: str) -> dict[str, int | float]:
 
 
 def second_features(args: argparse.Namespace, cfg: EncoderConfig, spec: str,
-                    sources: np.ndarray) -> torch.Tensor:
-    """The complete train objects `sources` (M,) encoded by cfg + overrides: -> (M, D2).
+                    sources: np.ndarray, rows: np.ndarray) -> torch.Tensor:
+    """The setting's rows encoded by cfg + overrides: -> (M, D2).
+
+    sources (M,): the complete train object of each row; rows (M,): for scans, the rows of
+    the scan section's ViewsDataset (its scans encoded again, cached by encode_dataset).
 
     aligned: the stored objects (encode_dataset's cache); yaw: each object at the same random
     yaw as ViewsDataset(random_yaw=True, seed 0) gives its complete item (first angle of its
@@ -178,6 +181,14 @@ def second_features(args: argparse.Namespace, cfg: EncoderConfig, spec: str,
         feats = encode_dataset(train, make_encoder(cfg2), cache_dir=Path(args.cache),
                                progress=False)
         return feats[torch.from_numpy(sources)]
+    if args.setting == 'scans':
+        from point_gn_ros.core.views import VIEW_PROTOCOLS
+        from point_gn_ros.datasets.views import ViewsDataset
+        ds = ViewsDataset(train, 4, 0, VIEW_PROTOCOLS['hpr'][0], include_full=True,
+                          random_yaw=True)
+        feats = encode_dataset(ds, make_encoder(cfg2), cache_dir=Path(args.cache),
+                               progress=False)
+        return feats[torch.from_numpy(rows)]
     import hashlib
     key = hashlib.sha1(repr(('concat_yaw_full', len(train), sorted(cfg2.to_dict().items()))
                             ).encode()).hexdigest()[:16]
@@ -193,11 +204,12 @@ def second_features(args: argparse.Namespace, cfg: EncoderConfig, spec: str,
 
 
 def load_setting(args: argparse.Namespace) -> tuple[torch.Tensor, np.ndarray, np.ndarray | None,
-                                                     EncoderConfig, dict, np.ndarray]:
+                                                     EncoderConfig, dict, np.ndarray,
+                                                     np.ndarray]:
     """Features of one setting.
 
     -> raw features (M, D), labels (M,), groups (M,) or None, encoder config, select grid,
-    source train object of each row (M,).
+    source train object of each row (M,), the rows taken from the encoded dataset (M,).
     """
     train = open_dataset(args.dataset, split='train')
     cache = Path(args.cache)
@@ -207,7 +219,7 @@ def load_setting(args: argparse.Namespace) -> tuple[torch.Tensor, np.ndarray, np
         rows = np.arange(0, len(train), args.subset)
         grid = dict(dims_options=tuple(d or None for d in (args.dims or [0])))
         return (feats[torch.from_numpy(rows)], np.asarray(train.labels)[rows], None, cfg, grid,
-                rows)
+                rows, rows)
     from point_gn_ros.core.views import VIEW_PROTOCOLS
     from point_gn_ros.datasets.views import ViewsDataset
     cfg = EncoderConfig(yaw_align=True)
@@ -222,7 +234,7 @@ def load_setting(args: argparse.Namespace) -> tuple[torch.Tensor, np.ndarray, np
                                                  else (512, 640))))
     groups = np.asarray(ds.groups)[rows] if args.setting == 'scans' else None
     return (feats[torch.from_numpy(rows)], np.asarray(ds.labels)[rows].astype(np.int64),
-            groups, cfg, grid, np.asarray(ds.groups)[rows])
+            groups, cfg, grid, np.asarray(ds.groups)[rows], rows)
 
 
 def main() -> None:
@@ -239,7 +251,7 @@ def main() -> None:
     p.add_argument('--out', default=None, help='append one JSON line per variant here')
     args = p.parse_args()
     torch.set_num_threads(1)
-    feats, labels, groups, cfg, grid, sources = load_setting(args)
+    feats, labels, groups, cfg, grid, sources, rows = load_setting(args)
     if args.alphas:
         grid['alphas'] = tuple(args.alphas)
     table = variants(cfg)
@@ -249,7 +261,7 @@ def main() -> None:
         t0 = time.process_time()
         if name.startswith(('cat:', 'only:')):
             kind, spec = name.split(':', 1)
-            f2 = second_features(args, cfg, spec, sources).float()
+            f2 = second_features(args, cfg, spec, sources, rows).float()
             x = torch.cat([feats.float(), f2], 1) if kind == 'cat' else f2
         else:
             x = table[name](feats.float())

@@ -68,7 +68,7 @@ def pick(split: str, classes: Sequence[str], per_class: int, offset: int = 0
     return xyz[idx], labels[idx]
 
 
-def build_tiny_bank(path: Path) -> Path:
+def build_tiny_bank(path: Path, extra_sigmas: tuple[float, ...] = ()) -> Path:
     """A bank of 3 train clouds for each of BANK_CLASSES, small encoder config (seconds)."""
     from point_gn_ros.bank.builder import build_bank
     from point_gn_ros.core.config import EncoderConfig
@@ -76,7 +76,7 @@ def build_tiny_bank(path: Path) -> Path:
     xyz, labels = pick('train', BANK_CLASSES, 3)
     all_names = load_modelnet_split('train')[2]
     local = np.array([BANK_CLASSES.index(all_names[i]) for i in labels], dtype=np.int64)
-    cfg = EncoderConfig(num_points=TEST_NUM_POINTS, k=TEST_K)
+    cfg = EncoderConfig(num_points=TEST_NUM_POINTS, k=TEST_K, extra_sigmas=extra_sigmas)
     dataset = ArrayDataset(xyz, local, list(BANK_CLASSES), str(MODELNET))
     bank = build_bank(dataset, cfg, folds=3, progress=False, gammas=(10.0, 100.0, 1000.0),
                       standardize_options=('none',))

@@ -23,8 +23,8 @@ def _bank(n: int = 30, classes: int = 3, dims: int | None = None) -> FeatureBank
                        transform=tf, gamma=50.0, meta={'provenance': {'dataset': 'x'}})
 
 
-@pytest.mark.parametrize('dtype', ['float16', 'float32', 'int8'])
-@pytest.mark.parametrize('dims', [None, 16])
+@pytest.mark.parametrize('dtype', ['float16', 'float32', 'int8', 'int4'])
+@pytest.mark.parametrize('dims', [None, 16, 15])
 def test_round_trip(tmp_path: Path, dtype: str, dims: int | None) -> None:
     bank = _bank(dims=dims)
     path = bank.save(tmp_path / 'b.npz', dtype=dtype)
@@ -32,13 +32,36 @@ def test_round_trip(tmp_path: Path, dtype: str, dims: int | None) -> None:
     assert back.class_names == bank.class_names and back.gamma == 50.0
     assert back.config == bank.config
     assert torch.equal(back.labels, bank.labels)
-    tol = {'float16': 2e-3, 'float32': 1e-6, 'int8': 1e-2}[dtype]
+    tol = {'float16': 2e-3, 'float32': 1e-6, 'int8': 1e-2, 'int4': 8e-2}[dtype]
     assert torch.allclose(back.features, bank.features, atol=tol)
     assert float((back.features * bank.features).sum(1).min()) > 1 - tol
     x = torch.randn(4, EncoderConfig().feature_dim)
     assert torch.allclose(back.transform(x), bank.transform(x), atol=1e-5)
     assert back.meta['stored_dtype'] == dtype and back.meta['encoder_version'] == 1
     assert 'x' in back.summary()
+
+
+def test_int4_packs_two_values_a_byte_exactly_and_restores_idempotently(tmp_path: Path) -> None:
+    from point_gn_ros.bank.store import pack_int4, to_stored, unpack_int4
+    q = np.random.default_rng(0).integers(-7, 8, (5, 9)).astype(np.int8)
+    packed = pack_int4(q)
+    assert packed.shape == (5, 5) and packed.dtype == np.uint8
+    assert np.array_equal(unpack_int4(packed, 9), q)
+    bank = _bank(dims=15)
+    stored = to_stored(bank.features, 'int4')
+    assert stored.nbytes == len(bank) * 8                     # an eighth of float32, padded
+    back = FeatureBank.load(bank.save(tmp_path / 'b.npz', dtype='int4'))
+    assert np.array_equal(to_stored(back.features, 'int4'), stored)   # saving again: same bytes
+
+
+def test_int4_bank_with_the_wrong_row_width_is_refused(tmp_path: Path) -> None:
+    path = _bank(dims=16).save(tmp_path / 'b.npz', dtype='int4')
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays['features'] = arrays['features'][:, :7]
+    np.savez(path, **arrays)
+    with pytest.raises(BankError, match='int4 features have 7 bytes a row, 16 dims need 8'):
+        FeatureBank.load(path)
 
 
 def test_load_never_unpickles(tmp_path: Path) -> None:

@@ -141,7 +141,7 @@ def test_refit_policies() -> None:
     assert recal.gamma == 50.0 and recal.meta['unknown_calibration']['threshold'] != 0.5
 
 
-@pytest.mark.parametrize('dtype', ['float16', 'float32', 'int8'])
+@pytest.mark.parametrize('dtype', ['float16', 'float32', 'int8', 'int4'])
 def test_save_load_is_bit_exact(tmp_path: Path, dtype: str) -> None:
     bf, centres = _bank(dtype=dtype)
     res = add_examples(bf, _queries(centres[1] * 1.5, 6, 11), 'new')
@@ -149,7 +149,9 @@ def test_save_load_is_bit_exact(tmp_path: Path, dtype: str) -> None:
     path = res.file.save(tmp_path / 'b.npz')
     back = BankFile.load(path)
     assert torch.equal(back.bank.features, res.bank.features)
-    assert np.array_equal(back.stored, res.file.stored) and back.stored.dtype == dtype
+    assert np.array_equal(back.stored, res.file.stored)
+    assert back.bank.meta['stored_dtype'] == dtype
+    assert back.stored.dtype == (np.int8 if dtype == 'int4' else dtype)
     assert back.bank.meta['bank_version'] == 2 and len(back.bank.meta['enrollments']) == 2
     q = torch.randn(50, D)
     a, b = Classifier(res.bank).classify(q), Classifier(back.bank).classify(q)

@@ -24,7 +24,7 @@ def test_int8_rows_round_trip_and_keep_cosines() -> None:
     np.testing.assert_array_equal(to_stored(torch.from_numpy(q.astype(np.float32)), 'int8'), q)
     assert float((back * u).sum(1).min()) > 0.999
     with pytest.raises(ValueError, match='dtype'):
-        to_stored(u, 'int4')
+        to_stored(u, 'int2')
 
 
 def test_gate_tells_two_populations_apart_and_validates_its_arrays() -> None:

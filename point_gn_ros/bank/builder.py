@@ -24,9 +24,15 @@ def encode_dataset(dataset, encoder: Encoder, batch_size: int = 64, progress: bo
                    cache_dir: Path | None = None) -> torch.Tensor:
     """Encode every cloud of a dataset: -> (len(dataset), feature_dim) float32.
 
-    cache_dir: reuse raw features keyed by dataset, split, encoder version and config.
+    cache_dir: reuse raw features keyed by dataset, split, encoder version and config (a
+    multi-scale encoder's features are cached per scale, so adding a scale re-encodes
+    only that one).
     """
     from point_gn_ros.core.config import ENCODER_VERSION
+    from point_gn_ros.core.multiscale import MultiScaleEncoder
+    if isinstance(encoder, MultiScaleEncoder) and cache_dir is not None:
+        return torch.cat([encode_dataset(dataset, enc, batch_size, progress, cache_dir)
+                          for enc in encoder.scales], dim=1)
     cache = None
     if cache_dir is not None:
         key = hashlib.sha1(repr((str(Path(dataset.path).resolve()), dataset.split, len(dataset),

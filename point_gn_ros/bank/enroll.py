@@ -35,7 +35,7 @@ import torch
 from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, ScatterStats,
                                      active_view, example_counts, refit, vote_to_z)
 from point_gn_ros.bank.rows import append_rows
-from point_gn_ros.bank.store import FeatureBank, to_stored
+from point_gn_ros.bank.store import FeatureBank, quantized, unpack_int4
 from point_gn_ros.bank.vote_prior import is_listed, with_listed, without
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.errors import PointGNError
@@ -128,7 +128,8 @@ def predictable(bank: FeatureBank, min_examples: int) -> list[str]:
 class BankFile:
     """A bank and the exact feature values its file holds (or will hold once saved).
 
-    stored: (N, d) float16 or float32, the `features` array of the file. Invariant:
+    stored: (N, d) float16, float32 or int8, the `features` array of the file (unpacked
+    to int8 values for an int4 file: bank.meta['stored_dtype'] says which). Invariant:
     bank.features == normalize(stored) row by row, computed as `FeatureBank.load` does, so
     save + load gives back the same bank bit for bit. (Re-casting the normalised features
     is not enough: rounding to float16 and re-normalising is not idempotent.)
@@ -147,15 +148,16 @@ class BankFile:
         """Read a bank file (None: the shipped default) keeping its stored feature values."""
         bank = FeatureBank.load(path, expected_config)
         with np.load(bank.path, allow_pickle=False) as z:
-            stored = z['features']
-            views = None if bank.views is None else cls(bank.views, z['views_features'])
+            stored = unpacked(bank, z['features'])
+            views = None if bank.views is None else cls(
+                bank.views, unpacked(bank.views, z['views_features']))
         return cls(bank, stored, views=views)
 
     @classmethod
     def of(cls, bank: FeatureBank, dtype: str | None = None) -> 'BankFile':
         """Wrap a bank never saved: features re-derived from their rounded stored values."""
         dtype = dtype or bank.meta.get('stored_dtype', 'float32')
-        stored = to_stored(bank.features, dtype)
+        stored = quantized(bank.features, dtype)
         meta = dict(bank.meta, stored_dtype=dtype)
         views = None if bank.views is None else cls.of(bank.views, dtype)
         out = replace(bank, features=_from_stored(stored), meta=meta,
@@ -209,7 +211,7 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
         raise EnrollError('features hold non-finite values')
     z_new = bank.transform(features.float().cpu())                  # (M, d) unit rows
     u_new = z_new if bank.head is None else bank.head.vote_space(z_new)
-    stored_new = to_stored(u_new, str(bf.stored.dtype))
+    stored_new = quantized(u_new, _dtype(bank, bf.stored))
     new = _from_stored(stored_new)                                   # (M, d) unit rows
     names = list(bank.class_names)
     new_class = class_name not in names
@@ -313,7 +315,7 @@ def save_atomic(bf: BankFile, path: str | os.PathLike[str]) -> Path:
         exact = replace(exact, views=replace(
             bf.views.bank, features=torch.from_numpy(bf.views.stored.astype(np.float32))))
     try:
-        exact.save(tmp, dtype=str(bf.stored.dtype))
+        exact.save(tmp, dtype=_dtype(bf.bank, bf.stored))
         with open(tmp, 'rb') as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -339,8 +341,19 @@ def _restore(bank: FeatureBank, stored: np.ndarray, moved: bool,
     """
     if not moved:          # rows already are normalize(stored), row by row
         return BankFile(bank, stored, stats)
-    stored = to_stored(bank.features, str(stored.dtype))
+    stored = quantized(bank.features, _dtype(bank, stored))
     return BankFile(replace(bank, features=_from_stored(stored)), stored, stats)
+
+
+def _dtype(bank: FeatureBank, stored: np.ndarray) -> str:
+    """The file dtype of stored values: int4 files keep theirs unpacked as int8."""
+    return 'int4' if bank.meta.get('stored_dtype') == 'int4' else str(stored.dtype)
+
+
+def unpacked(bank: FeatureBank, stored: np.ndarray) -> np.ndarray:
+    """A file's `features` array as BankFile keeps it (int4: unpacked to int8 values)."""
+    return unpack_int4(stored, bank.features.shape[1]) if _dtype(bank, stored) == 'int4' \
+        else stored
 
 
 def _both_sections(op, bf: BankFile, *args: Any, when: datetime | None = None,  # noqa: ANN001

@@ -50,6 +50,8 @@ CANDIDATES = 1024
 # Rows used to find the principal axes (a sample: the rotation only steers the coarse
 # pass, the rescoring is exact whatever it is).
 _PCA_ROWS = 20_000
+# Rows per block when quantizing or encoding many rows (bounds the float temporaries).
+_BLOCK_ROWS = 8192
 # A derived index (`BankIndex.derive`: enrollments append rows, removals drop a class) keeps
 # its basis until this share of the rows it was fitted on was appended or removed; then the
 # next version fits a fresh one. (20 new examples on the 39k-entry scan section: 0.05 %.)
@@ -108,13 +110,23 @@ class IndexBasis:
         return cls(rotation, scale, energy, n), z
 
     def quantize(self, z: np.ndarray) -> np.ndarray:
-        """Coordinates (M, r) float32 -> int8 codes (M, r), saturated at +-127."""
-        return np.ascontiguousarray(np.clip(np.rint(z / self.scale), -127, 127),
-                                    dtype=np.int8)
+        """Coordinates (M, r) float32 -> int8 codes (M, r), saturated at +-127.
+
+        In blocks of rows: a large bank's float temporaries stay small.
+        """
+        out = np.empty(z.shape, np.int8)
+        for i in range(0, len(z), _BLOCK_ROWS):
+            blk = z[i:i + _BLOCK_ROWS] / self.scale
+            np.rint(blk, out=blk)
+            out[i:i + _BLOCK_ROWS] = np.clip(blk, -127, 127, out=blk)
+        return out
 
     def encode(self, feats: np.ndarray, lib: Any) -> np.ndarray:
         """Rows (M, d) float32 -> int8 codes (M, r); row by row the same in any batch."""
-        return self.quantize(_project(feats, self.rotation, lib))
+        if len(feats) <= _BLOCK_ROWS:
+            return self.quantize(_project(feats, self.rotation, lib))
+        return np.concatenate([self.encode(feats[i:i + _BLOCK_ROWS], lib)
+                               for i in range(0, len(feats), _BLOCK_ROWS)])
 
 
 def _project(feats: np.ndarray, rotation: np.ndarray, lib: Any) -> np.ndarray:

@@ -17,7 +17,9 @@ Format version 2 (one `.npz`, read with allow_pickle=False, never unpickled):
 
 Format version 3 adds, optionally (written as version 2 when it has neither):
   features      may be int8: each row scaled so its largest coordinate is +-127 (rows are
-                L2-normalised at load, so no scale is stored)
+                L2-normalised at load, so no scale is stored), or int4 (meta stored_dtype
+                'int4'): each row scaled to +-7, stored + 8 as two 4-bit values per byte,
+                (N, ceil(d / 2)) uint8, the first value in the high half
   views_*       a second section, the single-view scans (`views_features`, `views_labels`,
                 `views_tf_*`, `views_head_*`, `views_meta`: the same arrays as above, with
                 the same class names and encoder), and
@@ -29,7 +31,7 @@ log line saying so; `point_gn bank build` rebuilds them with the head.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 import io
 import json
 import logging
@@ -49,9 +51,11 @@ from point_gn_ros.bank.transform import FeatureTransform
 from point_gn_ros.bank.validate import check_bank_arrays
 
 FORMAT_VERSION = 3
-# Written as version 2 when a bank has no views section and no int8 features (older readers).
+# Written as version 2 when a bank has no views section and no int8/int4 features (older
+# readers).
 PLAIN_VERSION = 2
-STORED_DTYPES = ('float16', 'float32', 'int8')
+STORED_DTYPES = ('float16', 'float32', 'int8', 'int4')
+_INTEGER_DTYPES = {'int8': 127, 'int4': 7}    # stored dtype -> largest stored magnitude
 VIEWS_PREFIX = 'views_'
 # Older formats that still load (as the plain kernel vote).
 VOTE_ONLY_VERSIONS = (1,)
@@ -129,8 +133,8 @@ class FeatureBank:
     def check_config(self, cfg: EncoderConfig) -> None:
         """Raise BankError unless the bank was built by an encoder configured as cfg."""
         if cfg != self.config:
-            diff = {k: (v, cfg.to_dict()[k]) for k, v in self.config.to_dict().items()
-                    if cfg.to_dict()[k] != v}
+            mine, theirs = asdict(self.config), asdict(cfg)
+            diff = {k: (v, theirs[k]) for k, v in mine.items() if theirs[k] != v}
             raise BankError(f'{self.path}: bank encoder configuration differs from the running '
                             f'encoder (bank, running): {diff}')
 
@@ -155,10 +159,10 @@ class FeatureBank:
     def _arrays(self, dtype: str, sectioned: bool = False) -> dict[str, np.ndarray]:
         """The file arrays of this section alone (no views section, no gate).
 
-        sectioned: the file also holds a views section (format 3, like int8 features).
+        sectioned: the file also holds a views section (format 3, like int8/int4 features).
         """
         meta = dict(self.meta)
-        version = FORMAT_VERSION if dtype == 'int8' or sectioned else PLAIN_VERSION
+        version = FORMAT_VERSION if dtype in _INTEGER_DTYPES or sectioned else PLAIN_VERSION
         meta.update(format_version=version,
                     encoder_version=ENCODER_VERSION,
                     encoder_config=self.config.to_dict(), class_names=list(self.class_names),
@@ -264,8 +268,12 @@ class FeatureBank:
         feats, labels = a['features'], a['labels']
         mean, scale = a['tf_mean'], a['tf_scale']
         proj = a.get('tf_projection')
-        if (feats.dtype not in (np.float16, np.float32, np.int8) or feats.ndim != 2
-                or len(feats) == 0):
+        packed = meta.get('stored_dtype') == 'int4'
+        if packed and (feats.dtype != np.uint8 or feats.ndim != 2 or len(feats) == 0):
+            raise bad(f'int4 features must be a non-empty 2-D uint8 array, got {feats.dtype} '
+                      f'{feats.shape}')
+        if not packed and (feats.dtype not in (np.float16, np.float32, np.int8)
+                           or feats.ndim != 2 or len(feats) == 0):
             raise bad(f'features must be a non-empty 2-D float16/float32/int8 array, got '
                       f'{feats.dtype} {feats.shape}')
         if labels.ndim != 1 or labels.shape[0] != feats.shape[0] or labels.dtype.kind not in 'iu':
@@ -279,6 +287,13 @@ class FeatureBank:
         out_dim = cfg.feature_dim if proj is None else proj.shape[-1]
         if proj is not None and proj.shape != (cfg.feature_dim, out_dim):
             raise bad(f'projection shape {proj.shape} does not fit {cfg.feature_dim}-dim features')
+        if packed:
+            if feats.shape[1] != (out_dim + 1) // 2:
+                raise bad(f'int4 features have {feats.shape[1]} bytes a row, {out_dim} dims '
+                          f'need {(out_dim + 1) // 2}')
+            feats = unpack_int4(feats, out_dim)
+            if not np.abs(feats).any(axis=1).all():
+                raise bad('int4 feature rows must not be all zero')
         if feats.shape[1] != out_dim:
             raise bad(f'features have {feats.shape[1]} dims, transform gives {out_dim}')
         for name, arr in (('features', feats), ('tf_mean', mean), ('tf_scale', scale),
@@ -294,7 +309,9 @@ class FeatureBank:
         tf = FeatureTransform(torch.from_numpy(mean.astype(np.float32)),
                               torch.from_numpy(scale.astype(np.float32)),
                               None if proj is None else torch.from_numpy(proj.astype(np.float32)))
-        features = torch.nn.functional.normalize(torch.from_numpy(feats.astype(np.float32)), dim=1)
+        # F.normalize's arithmetic in place: a large bank's rows are not held twice at load.
+        features = torch.from_numpy(feats.astype(np.float32))
+        features.div_(features.norm(dim=1, keepdim=True).clamp_min(1e-12))
         return cls(features=features, labels=torch.from_numpy(labels.astype(np.int64)),
                    class_names=class_names, config=cfg, transform=tf, gamma=gamma, meta=meta,
                    path=path, head=head)
@@ -334,16 +351,39 @@ class FeatureBank:
 def to_stored(features: torch.Tensor, dtype: str) -> np.ndarray:
     """Unit rows (N, d) -> the values a file stores (N, d) in `dtype`.
 
-    float16/float32: cast. int8: every row scaled so its largest coordinate is +-127 (load
-    re-normalises rows, so no scale is kept); stored int8 values cast to float32 and stored
-    again are unchanged.
+    float16/float32: cast. int8 / int4: every row scaled so its largest coordinate is +-127 /
+    +-7 (load re-normalises rows, so no scale is kept; int4 is packed, pack_int4); stored
+    values cast to float32 and stored again are unchanged.
     """
+    q = quantized(features, dtype)
+    return pack_int4(q) if dtype == 'int4' else q
+
+
+def quantized(features: torch.Tensor, dtype: str) -> np.ndarray:
+    """to_stored's values before int4 packing: (N, d) in dtype (int8 values for int4)."""
     if dtype not in STORED_DTYPES:
         raise ValueError(f'dtype must be one of {", ".join(STORED_DTYPES)}, got {dtype}')
     x = features.detach().cpu().float().numpy()
-    if dtype != 'int8':
+    if dtype not in _INTEGER_DTYPES:
         return x.astype(dtype)
+    top = _INTEGER_DTYPES[dtype]
     peak = np.abs(x).max(axis=1, keepdims=True)
-    scale = np.divide(np.float32(127.0), peak, out=np.zeros_like(peak), where=peak > 0)
-    return np.clip(np.rint(x * scale), -127, 127).astype(np.int8)
+    scale = np.divide(np.float32(top), peak, out=np.zeros_like(peak), where=peak > 0)
+    return np.clip(np.rint(x * scale), -top, top).astype(np.int8)
+
+
+def pack_int4(q: np.ndarray) -> np.ndarray:
+    """(N, d) int8 in [-7, 7] -> (N, ceil(d / 2)) uint8: q + 8 per 4 bits, first value high."""
+    u = (q.astype(np.int16) + 8).astype(np.uint8)
+    if u.shape[1] % 2:
+        u = np.concatenate([u, np.full((len(u), 1), 8, np.uint8)], axis=1)  # a zero
+    return (u[:, 0::2] << 4) | u[:, 1::2]
+
+
+def unpack_int4(packed: np.ndarray, dim: int) -> np.ndarray:
+    """pack_int4's inverse: (N, ceil(dim / 2)) uint8 -> (N, dim) int8 in [-8, 7]."""
+    out = np.empty((len(packed), 2 * packed.shape[1]), np.int8)
+    out[:, 0::2] = (packed >> 4).astype(np.int8) - 8
+    out[:, 1::2] = (packed & 15).astype(np.int8) - 8
+    return out[:, :dim]
 

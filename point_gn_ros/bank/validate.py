@@ -101,14 +101,23 @@ def _check_number(name: str, value: Any, kind: type, lo: float, hi: float) -> st
 
 def check_encoder_config(cfg: Mapping[str, Any]) -> str | None:
     """The first problem of an encoder configuration dict, or None (unknown keys: None)."""
-    if set(cfg) - set(ENCODER_RANGES):
+    if set(cfg) - set(ENCODER_RANGES) - {'extra_sigmas'}:
         return None                  # store.py: 'incomplete metadata (unknown keys)'
     for name, (kind, lo, hi) in ENCODER_RANGES.items():
         if name in cfg:
             problem = _check_number(name, cfg[name], kind, lo, hi)
             if problem:
                 return f'encoder configuration: {problem}'
-    from point_gn_ros.core.config import EncoderConfig
+    from point_gn_ros.core.config import MAX_EXTRA_SIGMAS, EncoderConfig
+    extra = cfg.get('extra_sigmas', [])
+    if not isinstance(extra, list) or len(extra) > MAX_EXTRA_SIGMAS:
+        return (f'encoder configuration: extra_sigmas must be a list of at most '
+                f'{MAX_EXTRA_SIGMAS} numbers, got {extra!r}'[:300])
+    for s in extra:
+        lo, hi = ENCODER_RANGES['sigma'][1:]
+        problem = _check_number('extra_sigmas', s, float, lo, hi)
+        if problem:
+            return f'encoder configuration: {problem}'
     full = {**EncoderConfig().to_dict(), **cfg}
     if full['k'] > full['num_points']:
         return (f"encoder configuration: k={full['k']} neighbours is more than "

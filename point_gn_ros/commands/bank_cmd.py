@@ -26,6 +26,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='GPE sigma (default: 0.3 for ScanObjectNN, else 0.4, as in the '
                         'paper)')
     b.add_argument('--k', type=int, default=None, help='neighbours per centre (default 120)')
+    b.add_argument('--extra-sigmas', type=float, nargs='+', default=[], metavar='SIGMA',
+                   help='multi-scale features: also encode every cloud with these GPE sigmas '
+                        'and concatenate (e.g. 0.25: +0.4 points CV on ModelNet40 at ~2x the '
+                        "encoder's cost per cloud; BENCHMARKS.md)")
     b.add_argument('--yaw-align', action='store_true',
                    help='rotate every cloud into a canonical heading about z before encoding '
                         '(yaw-invariant bank, for upright objects seen from any side)')
@@ -41,9 +45,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument('--cv-every', type=int, default=1, metavar='N',
                    help='cross-validate on every N-th object (with its views) only, then fit '
                         'the chosen knobs on all (CV cost grows with the square of the bank)')
-    b.add_argument('--dtype', choices=('float16', 'float32', 'int8'), default='float16',
+    b.add_argument('--dtype', choices=('float16', 'float32', 'int8', 'int4'), default='float16',
                    help='stored feature precision (default float16; int8: a quarter of '
-                        'float32, cosines within ~1e-3)')
+                        'float32, cosines within ~1e-3; int4: an eighth, cosines off by ~1e-2 '
+                        'on average, no loss measured by CV on scans: BENCHMARKS.md)')
     b.add_argument('--sections', action='store_true',
                    help='with --views: keep complete objects and scans as two sections, each '
                         'with its own knobs chosen by CV (complete: --dims; scans: '
@@ -92,12 +97,13 @@ def _build(args: argparse.Namespace) -> int:
         args.sigma = SCANOBJECTNN_SIGMA
     overrides = {k: v for k, v in (('sigma', args.sigma), ('k', args.k)) if v is not None}
     overrides['yaw_align'] = args.yaw_align
+    overrides['extra_sigmas'] = tuple(args.extra_sigmas)
     cfg = EncoderConfig(**overrides)
     dims = [None if d == 0 else d for d in (args.dims or [0])]
     if args.sections and not args.views:
         raise SystemExit('bank build: --sections needs --views K')
     if args.default_bank:
-        args.dtype = 'int8' if args.dtype == 'int8' else 'float16'
+        args.dtype = args.dtype if args.dtype in ('int8', 'int4') else 'float16'
         dims = args.dims and dims or [512, 640]
         args.standardize = ['standardize']
     print(f'{ds.format} {ds.split}: {len(ds)} objects, {len(ds.class_names)} classes')

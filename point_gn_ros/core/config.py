@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 import math
 from typing import Any
 from collections.abc import Mapping
@@ -10,6 +10,8 @@ from collections.abc import Mapping
 # Bump whenever the encoder's output changes for a given configuration, so that
 # banks built by an older encoder are refused instead of silently mis-matched.
 ENCODER_VERSION = 1
+# More scales multiply the encoder's cost; two were measured to help (BENCHMARKS.md).
+MAX_EXTRA_SIGMAS = 3
 
 
 @dataclass(frozen=True)
@@ -24,6 +26,9 @@ class EncoderConfig:
     # Rotate each cloud about the vertical (z) axis into a canonical heading before
     # encoding: yaw-invariant classification for upright objects seen from any side.
     yaw_align: bool = False
+    # Multi-scale features: the cloud is encoded again with each of these GPE sigmas (same
+    # FPS centres and neighbours) and the features are concatenated, sigma's first.
+    extra_sigmas: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.num_points < 2 ** self.stages:
@@ -37,6 +42,12 @@ class EncoderConfig:
             raise ValueError(f'k must be >= 1, got {self.k}')
         if not (math.isfinite(self.sigma) and self.sigma > 0):
             raise ValueError(f'sigma must be a positive number, got {self.sigma}')
+        # frozen: normalise a list (JSON) to a tuple of floats
+        object.__setattr__(self, 'extra_sigmas', tuple(float(s) for s in self.extra_sigmas))
+        if len(self.extra_sigmas) > MAX_EXTRA_SIGMAS or not all(
+                math.isfinite(s) and s > 0 for s in self.extra_sigmas):
+            raise ValueError(f'extra_sigmas must be at most {MAX_EXTRA_SIGMAS} positive '
+                             f'numbers, got {list(self.extra_sigmas)}')
 
     @property
     def stage_dims(self) -> tuple[int, ...]:
@@ -49,12 +60,32 @@ class EncoderConfig:
         return tuple(self.num_points // 2 ** (i + 1) for i in range(self.stages))
 
     @property
-    def feature_dim(self) -> int:
-        """Length of the global feature: max and mean of every stage."""
+    def sigmas(self) -> tuple[float, ...]:
+        """Every GPE sigma the features are computed with, in feature order."""
+        return (self.sigma, *self.extra_sigmas)
+
+    @property
+    def scale_dim(self) -> int:
+        """Length of one sigma's global feature: max and mean of every stage."""
         return 2 * sum(self.stage_dims)
 
+    @property
+    def feature_dim(self) -> int:
+        """Length of the global feature: scale_dim per sigma."""
+        return self.scale_dim * len(self.sigmas)
+
+    def single(self, sigma: float) -> 'EncoderConfig':
+        """The same configuration with one sigma and no extra scales."""
+        return replace(self, sigma=sigma, extra_sigmas=())
+
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """JSON-ready dict; extra_sigmas only when set, so single-scale banks are unchanged."""
+        out = asdict(self)
+        if self.extra_sigmas:
+            out['extra_sigmas'] = list(self.extra_sigmas)
+        else:
+            del out['extra_sigmas']
+        return out
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> 'EncoderConfig':

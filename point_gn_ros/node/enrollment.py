@@ -44,7 +44,7 @@ from rclpy.task import Future as RclpyFuture
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
+from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable, unpacked
 from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.bank.refit import MAX_VOTE_PRIOR
 from point_gn_ros.core.augment import AUGMENTS
@@ -445,8 +445,9 @@ def _bank_file(bank: Any) -> BankFile:
     if bank.path is not None:
         try:
             with np.load(bank.path, allow_pickle=False) as z:
-                stored = z['features']
-                views = z['views_features'] if bank.views is not None else None
+                stored = unpacked(bank, z['features'])
+                views = (unpacked(bank.views, z['views_features']) if bank.views is not None
+                         else None)
             if _matches(stored, bank.features) and (
                     views is None or _matches(views, bank.views.features)):
                 return BankFile(bank, stored, views=None if views is None
