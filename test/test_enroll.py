@@ -11,6 +11,8 @@ import sys
 import threading
 import time
 
+from unittest import mock
+
 import numpy as np
 import pytest
 import torch
@@ -334,6 +336,12 @@ def test_incremental_lda_refit_matches_a_full_refit() -> None:
     plain = BankFile.of(bank, 'float32')
     fast = plain.with_stats()
     assert fast.stats is not None and plain.stats is None
+    # computed in blocks of rows (a large bank's float64 rows never all at once): the same sums
+    with mock.patch('point_gn_ros.bank.enroll._STATS_BLOCK', 7):
+        blocked = plain.with_stats().stats
+    for a, b in ((fast.stats.gram, blocked.gram), (fast.stats.sums, blocked.sums)):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    assert torch.equal(fast.stats.counts, blocked.counts)
     new = torch.randn(D, generator=torch.Generator().manual_seed(81))
     policy = RefitPolicy(gamma='keep')
     steps = [lambda b: add_examples(b, _queries(new, 5, 1), 'new', policy=policy),

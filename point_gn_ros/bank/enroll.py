@@ -124,6 +124,9 @@ def predictable(bank: FeatureBank, min_examples: int) -> list[str]:
 # ------------------------------------------------------------------------------ operations
 
 
+# Rows per block when computing a bank's scatter statistics (BankFile.with_stats).
+_STATS_BLOCK = 8192
+
 @dataclass(frozen=True)
 class BankFile:
     """A bank and the exact feature values its file holds (or will hold once saved).
@@ -170,9 +173,13 @@ class BankFile:
         views = None if self.views is None else self.views.with_stats()
         if self.stats is not None or head is None or head.lda_coef is None:
             return self if views is self.views else replace(self, views=views)
-        z = vote_to_z(self.bank.features, head)
-        return replace(self, stats=ScatterStats.of(z, self.bank.labels, self.bank.num_classes),
-                       views=views)
+        # In blocks of rows: a 79k-row scan section in float64 would need ~0.5 GB at once.
+        u, labels, stats = self.bank.features, self.bank.labels, None
+        for i in range(0, len(u), _STATS_BLOCK):
+            part = ScatterStats.of(vote_to_z(u[i:i + _STATS_BLOCK], head),
+                                   labels[i:i + _STATS_BLOCK], self.bank.num_classes)
+            stats = part if stats is None else stats.merge(part)
+        return replace(self, stats=stats, views=views)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Atomic write of exactly this bank (see `save_atomic`)."""

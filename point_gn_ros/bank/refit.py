@@ -63,6 +63,11 @@ class ScatterStats:
         counts = torch.bincount(labels, minlength=num_classes).double()
         return cls(z64.T @ z64, sums, counts)
 
+    def merge(self, other: 'ScatterStats') -> 'ScatterStats':
+        """The statistics of both sets of rows (same classes)."""
+        return ScatterStats(self.gram + other.gram, self.sums + other.sums,
+                            self.counts + other.counts)
+
     def add(self, z: torch.Tensor, class_id: int) -> 'ScatterStats':
         """Rows z (m, d) joining class `class_id` (== C: a new class) -> new stats."""
         z64 = z.double()

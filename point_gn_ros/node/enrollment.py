@@ -142,7 +142,10 @@ class Enrollment(ManagedEntity):
         policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'],
                              lda_prior=prior, vote_prior=float(self.values['enroll_vote_prior']))
         try:
-            self.live = LiveBank(_bank_file(node.recognizer.bank), self._make_model, policy,
+            # The first version's model derives from the node's recognizer (same rows): its
+            # search index is reused, not fitted again beside the live one (peak memory).
+            self.live = LiveBank(_bank_file(node.recognizer.bank),
+                                 lambda bank: self._make_model(bank, node.recognizer), policy,
                                  derive=self._make_model)
             node.replace_recognizer(self.live.current().model)
         except (PointGNError, ValueError) as exc:
@@ -457,11 +460,12 @@ def _bank_file(bank: Any) -> BankFile:
     return BankFile.of(bank)
 
 
-def _matches(stored: np.ndarray, features: torch.Tensor) -> bool:
-    """Whether the loaded rows are exactly the normalised stored values."""
-    return stored.shape == tuple(features.shape) and torch.equal(
-        torch.nn.functional.normalize(torch.from_numpy(stored.astype(np.float32)), dim=1),
-        features)
+def _matches(stored: np.ndarray, features: torch.Tensor, block: int = 8192) -> bool:
+    """Whether the loaded rows are exactly the normalised stored values (by blocks of rows)."""
+    return stored.shape == tuple(features.shape) and all(torch.equal(
+        torch.nn.functional.normalize(torch.from_numpy(stored[i:i + block].astype(np.float32)),
+                                      dim=1), features[i:i + block])
+        for i in range(0, len(stored), block))
 
 
 def _answer(response: Any, ok: bool, message: str) -> Any:
