@@ -3,13 +3,13 @@
 Pseudo-enrollment on the default bank's own objects (no test object is read):
 - each round takes, per ModelNet10 category, one train object as a pseudo "new instance" and
   `--others` further random train objects as existing-class queries; all of them are taken
-  out of both sections of the bank (their complete entry and their 4 HPR scans);
+  out of both sections of the bank (their complete entry and their HPR scans: 4 or 8);
 - the pseudo-instances go through scripts/enroll_study.py's protocol on TRAIN objects: 5 HPR
   scans each (evenly spread azimuths) enrolled as new classes '<category>_object_<i>' through
   `add_examples` with the study's refit policy, `--query-views` other scans queried (other
   seeds: other azimuths, noise, dropout);
 - existing classes: the other objects' complete entries and scans (raw features from the bank
-  build's feature cache, `make default-bank CACHE=...`: the bank's own 4 scans of each; or, with
+  build's feature cache, `make default-bank CACHE=...`: the bank's own scans of each; or, with
   `--other-scans random`, one new scan from a random viewpoint as enroll_study's existing-class
   scans), classified before and after the enrollment; the drop counts right-before-wrong-after
   minus the reverse.
@@ -34,6 +34,7 @@ import sys
 import numpy as np
 import torch
 
+from point_gn_ros.bank.builder import feature_cache_path
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, refit
 from point_gn_ros.bank.vote_prior import META_KEY
@@ -41,19 +42,18 @@ from point_gn_ros.core.config import ENCODER_VERSION
 from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
                                      simulate_views)
 from point_gn_ros.datasets import open_dataset
+from point_gn_ros.datasets.views import ViewsDataset
 from point_gn_ros.recognizer import encode_clouds, make_encoder
 
 MODELNET = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'modelnet40_1024'
 MODELNET10 = ('bathtub', 'bed', 'chair', 'desk', 'dresser', 'monitor', 'night_stand', 'sofa',
               'table', 'toilet')
-# The bank build's cached raw features (complete, then 4 scans, per train object).
-FEATS = 'feats_2da2cc2a68e7cbc7.npy'
 BETAS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
 def subset(bf: BankFile, keep_obj: np.ndarray) -> BankFile:
     """The bank without some train objects: keep_obj (S,) bool over the source objects."""
-    vk = np.repeat(keep_obj, 4)
+    vk = np.repeat(keep_obj, len(bf.views.bank) // len(keep_obj))
     b, v = bf.bank, bf.views.bank
     views = replace(v, features=v.features[torch.from_numpy(vk)],
                     labels=v.labels[torch.from_numpy(vk)])
@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--scope', choices=('enrolled', 'all'), default='enrolled')
     p.add_argument('--betas', type=float, nargs='+', default=list(BETAS))
     p.add_argument('--other-scans', choices=('bank', 'random'), default='bank',
-                   help="existing-class scans: the bank's own 4 scans of each held-out object, "
+                   help="existing-class scans: the bank's own scans of each held-out object, "
                         "or one scan from a random viewpoint (enroll_study's existing-class "
                         'protocol, seed [7, object])')
     p.add_argument('--json', default=None)
@@ -147,10 +147,15 @@ def main(argv: list[str] | None = None) -> int:
     bf = BankFile.load()
     train = open_dataset(args.data, split='train')
     labels = np.asarray(train.labels)
-    raw = np.load(Path(args.cache) / FEATS, mmap_mode='r')            # (5 S, D)
     n_obj = len(labels)
-    assert raw.shape[0] == 5 * n_obj and np.array_equal(
-        bf.views.bank.labels.numpy(), np.repeat(labels, 4)), 'feature cache / bank mismatch'
+    views = len(bf.views.bank) // n_obj                 # scans per object in the bank
+    # The bank build's cached raw features (complete, then its scans, per train object).
+    built = ViewsDataset(train, views, 0, VIEW_PROTOCOLS['hpr'][0], include_full=True,
+                         random_yaw=True)
+    raw = np.load(feature_cache_path(built, bf.bank.config, args.cache), mmap_mode='r')
+    per = views + 1                                     # rows per object: (per S, D)
+    assert raw.shape[0] == per * n_obj and np.array_equal(
+        bf.views.bank.labels.numpy(), np.repeat(labels, views)), 'feature cache / bank mismatch'
     policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior)
     encoder = make_encoder(bf.bank.config)
     res = {b: {'inst': [], 'complete': [], 'scan': []} for b in args.betas}
@@ -162,10 +167,11 @@ def main(argv: list[str] | None = None) -> int:
         keep = np.ones(n_obj, dtype=bool)
         keep[inst] = keep[others] = False
         cur = refitted(subset(bf, keep), policy)
-        q_full = torch.from_numpy(np.asarray(raw[5 * others]))
+        q_full = torch.from_numpy(np.asarray(raw[per * others]))
         if args.other_scans == 'bank':
-            q_scan = torch.from_numpy(np.concatenate([raw[5 * o + 1:5 * o + 5] for o in others]))
-            t_scan = np.repeat(labels[others], 4)
+            q_scan = torch.from_numpy(np.concatenate([raw[per * o + 1:per * o + per]
+                                                      for o in others]))
+            t_scan = np.repeat(labels[others], views)
         else:
             q_scan, t_scan = random_scans(train, others, args.cache, encoder), labels[others]
         t_full = labels[others]

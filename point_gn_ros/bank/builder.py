@@ -28,16 +28,13 @@ def encode_dataset(dataset, encoder: Encoder, batch_size: int = 64, progress: bo
     multi-scale encoder's features are cached per scale, so adding a scale re-encodes
     only that one).
     """
-    from point_gn_ros.core.config import ENCODER_VERSION
     from point_gn_ros.core.multiscale import MultiScaleEncoder
     if isinstance(encoder, MultiScaleEncoder) and cache_dir is not None:
         return torch.cat([encode_dataset(dataset, enc, batch_size, progress, cache_dir)
                           for enc in encoder.scales], dim=1)
     cache = None
     if cache_dir is not None:
-        key = hashlib.sha1(repr((str(Path(dataset.path).resolve()), dataset.split, len(dataset),
-                                 ENCODER_VERSION, encoder.cfg.to_dict())).encode()).hexdigest()
-        cache = Path(cache_dir) / f'feats_{key[:16]}.npy'
+        cache = feature_cache_path(dataset, encoder.cfg, cache_dir)
         if cache.is_file():
             return torch.from_numpy(np.load(cache, allow_pickle=False))
     clouds = (dataset[i][0] for i in range(len(dataset)))
@@ -47,6 +44,14 @@ def encode_dataset(dataset, encoder: Encoder, batch_size: int = 64, progress: bo
         cache.parent.mkdir(parents=True, exist_ok=True)
         np.save(cache, feats.numpy())
     return feats
+
+
+def feature_cache_path(dataset, cfg: EncoderConfig, cache_dir: Path | str) -> Path:
+    """Where encode_dataset caches a single-scale encoder's features of `dataset`."""
+    from point_gn_ros.core.config import ENCODER_VERSION
+    key = hashlib.sha1(repr((str(Path(dataset.path).resolve()), dataset.split, len(dataset),
+                             ENCODER_VERSION, cfg.to_dict())).encode()).hexdigest()
+    return Path(cache_dir) / f'feats_{key[:16]}.npy'
 
 
 def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel: Selection
