@@ -1,7 +1,7 @@
 """Bank rows that grow by appending without copying the whole bank each version.
 
 An enrollment's bank is the previous version's rows plus a few new ones. Concatenating
-copies every row (the shipped scan section: 39,372 x 320 float32, 50 MB, ~45 ms of CPU per
+copies every row (a scan section of 39,372 x 320 float32: 50 MB, ~45 ms of CPU per
 enrollment, more on a loaded machine). Instead the rows live in a buffer with spare room
 after them: version k's features are a view of the buffer's first n_k rows, and the next
 version writes its new rows after them and views n_k + m rows.
