@@ -32,6 +32,12 @@ def test_features_are_each_sigmas_features_concatenated_and_match_the_oracle() -
     assert torch.equal(got, torch.cat(parts, 1))
     assert not torch.equal(parts[0], parts[1])          # the second scale is not a copy
     oracle = make_encoder(CFG, naive=True).encode(x)
+    # a single-sigma encoder given the multi-scale configuration would fill half a row
+    from point_gn_ros.core.encoder import PointGNEncoder
+    from point_gn_ros.core.encoder_naive import NaiveEncoder
+    for cls in (PointGNEncoder, NaiveEncoder):
+        with pytest.raises(ValueError, match='one encoder per sigma'):
+            cls(CFG)
     rel = ((got - oracle).abs() / oracle.abs().clamp_min(1e-3)).max()
     assert float(rel) < 1e-4
 

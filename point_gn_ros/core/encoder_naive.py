@@ -107,6 +107,9 @@ class NaiveEncoder:
     """
 
     def __init__(self, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu') -> None:
+        if cfg.extra_sigmas:
+            raise ValueError('a multi-scale configuration needs one encoder per sigma: use '
+                             'recognizer.make_encoder (core/multiscale.py)')
         self.cfg = cfg
         self.device = torch.device(device)
 
