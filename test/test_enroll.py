@@ -164,6 +164,20 @@ def test_save_load_is_bit_exact(tmp_path: Path, dtype: str) -> None:
     assert not list(tmp_path.glob('.*tmp*'))
 
 
+@pytest.mark.parametrize('dtype', ['float16', 'int4'])
+def test_the_node_wraps_its_loaded_bank_without_rederiving_it(tmp_path: Path, dtype: str
+                                                              ) -> None:
+    """node/enrollment.py reads the file's stored values (int4: unpacked) for the loaded bank."""
+    from point_gn_ros.node.enrollment import _bank_file
+    bf, _ = _bank(dtype=dtype)
+    loaded = FeatureBank.load(bf.save(tmp_path / 'b.npz'))
+    wrapped = _bank_file(loaded)
+    assert wrapped.bank is loaded                     # the same rows, no second copy
+    assert np.array_equal(wrapped.stored, bf.stored)
+    again = FeatureBank.load(wrapped.save(tmp_path / 'c.npz'))
+    assert torch.equal(again.features, loaded.features)
+
+
 def test_live_bank_readers_see_whole_versions() -> None:
     """Readers racing writers only ever see a snapshot whose parts agree."""
     bf, centres = _bank()
