@@ -96,7 +96,7 @@ def features(args: argparse.Namespace, clouds: list[np.ndarray]) -> tuple[np.nda
                                   make))
         return base, copies
     if args.setting == 'scans':
-        return _scan_features(args, clouds)
+        return _scan_features(args)
     # yaw: prepare as the yaw-aligned bank does, then re-map the canonical frame and encode
     # without re-canonicalising (the encoder's own prepare is then a no-op up to rounding).
     enc = make_encoder(EncoderConfig(yaw_align=False))
@@ -111,8 +111,7 @@ def features(args: argparse.Namespace, clouds: list[np.ndarray]) -> tuple[np.nda
     return base, copies
 
 
-def _scan_features(args: argparse.Namespace, clouds: list[np.ndarray]
-                   ) -> tuple[np.ndarray, list]:
+def _scan_features(args: argparse.Namespace) -> tuple[np.ndarray, list]:
     """The default bank's scan section and args.copies more sets of scans.
 
     4 HPR scans per object, view seed 0 (the shipped section), then view seeds 1, 2, ...;

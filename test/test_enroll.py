@@ -167,11 +167,10 @@ def test_save_load_is_bit_exact(tmp_path: Path, dtype: str) -> None:
 @pytest.mark.parametrize('dtype', ['float16', 'int4'])
 def test_the_node_wraps_its_loaded_bank_without_rederiving_it(tmp_path: Path, dtype: str
                                                               ) -> None:
-    """node/enrollment.py reads the file's stored values (int4: unpacked) for the loaded bank."""
-    from point_gn_ros.node.enrollment import _bank_file
+    """BankFile.of_loaded (node/enrollment.py's start) reads the file's values (int4: unpacked)."""
     bf, _ = _bank(dtype=dtype)
     loaded = FeatureBank.load(bf.save(tmp_path / 'b.npz'))
-    wrapped = _bank_file(loaded)
+    wrapped = BankFile.of_loaded(loaded)
     assert wrapped.bank is loaded                     # the same rows, no second copy
     assert np.array_equal(wrapped.stored, bf.stored)
     again = FeatureBank.load(wrapped.save(tmp_path / 'c.npz'))
@@ -351,7 +350,7 @@ def test_incremental_lda_refit_matches_a_full_refit() -> None:
     fast = plain.with_stats()
     assert fast.stats is not None and plain.stats is None
     # computed in blocks of rows (a large bank's float64 rows never all at once): the same sums
-    with mock.patch('point_gn_ros.bank.enroll._STATS_BLOCK', 7):
+    with mock.patch('point_gn_ros.bank.enroll._BLOCK_ROWS', 7):
         blocked = plain.with_stats().stats
     for a, b in ((fast.stats.gram, blocked.gram), (fast.stats.sums, blocked.sums)):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

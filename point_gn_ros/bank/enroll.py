@@ -124,8 +124,9 @@ def predictable(bank: FeatureBank, min_examples: int) -> list[str]:
 # ------------------------------------------------------------------------------ operations
 
 
-# Rows per block when computing a bank's scatter statistics (BankFile.with_stats).
-_STATS_BLOCK = 8192
+# Rows per block when a pass goes over a whole bank (scatter statistics, the stored-rows
+# check): a large section's float temporaries stay small.
+_BLOCK_ROWS = 8192
 
 @dataclass(frozen=True)
 class BankFile:
@@ -149,11 +150,30 @@ class BankFile:
     def load(cls, path: str | os.PathLike[str] | None = None,
              expected_config: Any = None) -> 'BankFile':
         """Read a bank file (None: the shipped default) keeping its stored feature values."""
-        bank = FeatureBank.load(path, expected_config)
+        return cls._with_file_values(FeatureBank.load(path, expected_config))
+
+    @classmethod
+    def of_loaded(cls, bank: FeatureBank) -> 'BankFile':
+        """A bank loaded earlier, with its file's stored values when they still give its rows.
+
+        Else (the file changed or went away since) the values are re-derived (`of`).
+        """
+        if bank.path is not None:
+            try:
+                bf = cls._with_file_values(bank)
+                if _matches(bf.stored, bank.features) and (
+                        bf.views is None or _matches(bf.views.stored, bank.views.features)):
+                    return bf
+            except (OSError, KeyError, ValueError):
+                pass
+        return cls.of(bank)
+
+    @classmethod
+    def _with_file_values(cls, bank: FeatureBank) -> 'BankFile':
         with np.load(bank.path, allow_pickle=False) as z:
-            stored = unpacked(bank, z['features'])
+            stored = _unpacked(bank, z['features'])
             views = None if bank.views is None else cls(
-                bank.views, unpacked(bank.views, z['views_features']))
+                bank.views, _unpacked(bank.views, z['views_features']))
         return cls(bank, stored, views=views)
 
     @classmethod
@@ -175,9 +195,9 @@ class BankFile:
             return self if views is self.views else replace(self, views=views)
         # In blocks of rows: a 79k-row scan section in float64 would need ~0.5 GB at once.
         u, labels, stats = self.bank.features, self.bank.labels, None
-        for i in range(0, len(u), _STATS_BLOCK):
-            part = ScatterStats.of(vote_to_z(u[i:i + _STATS_BLOCK], head),
-                                   labels[i:i + _STATS_BLOCK], self.bank.num_classes)
+        for i in range(0, len(u), _BLOCK_ROWS):
+            part = ScatterStats.of(vote_to_z(u[i:i + _BLOCK_ROWS], head),
+                                   labels[i:i + _BLOCK_ROWS], self.bank.num_classes)
             stats = part if stats is None else stats.merge(part)
         return replace(self, stats=stats, views=views)
 
@@ -357,10 +377,17 @@ def _dtype(bank: FeatureBank, stored: np.ndarray) -> str:
     return 'int4' if bank.meta.get('stored_dtype') == 'int4' else str(stored.dtype)
 
 
-def unpacked(bank: FeatureBank, stored: np.ndarray) -> np.ndarray:
+def _unpacked(bank: FeatureBank, stored: np.ndarray) -> np.ndarray:
     """A file's `features` array as BankFile keeps it (int4: unpacked to int8 values)."""
     return unpack_int4(stored, bank.features.shape[1]) if _dtype(bank, stored) == 'int4' \
         else stored
+
+
+def _matches(stored: np.ndarray, features: torch.Tensor) -> bool:
+    """Whether rows are exactly the normalised stored values (by blocks: no second copy)."""
+    return stored.shape == tuple(features.shape) and all(
+        torch.equal(_from_stored(stored[i:i + _BLOCK_ROWS]), features[i:i + _BLOCK_ROWS])
+        for i in range(0, len(stored), _BLOCK_ROWS))
 
 
 def _both_sections(op, bf: BankFile, *args: Any, when: datetime | None = None,  # noqa: ANN001

@@ -114,8 +114,7 @@ def check_encoder_config(cfg: Mapping[str, Any]) -> str | None:
         return (f'encoder configuration: extra_sigmas must be a list of at most '
                 f'{MAX_EXTRA_SIGMAS} numbers, got {extra!r}'[:300])
     for s in extra:
-        lo, hi = ENCODER_RANGES['sigma'][1:]
-        problem = _check_number('extra_sigmas', s, float, lo, hi)
+        problem = _check_number('extra_sigmas', s, *ENCODER_RANGES['sigma'])
         if problem:
             return f'encoder configuration: {problem}'
     full = {**EncoderConfig().to_dict(), **cfg}

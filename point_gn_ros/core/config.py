@@ -74,6 +74,12 @@ class EncoderConfig:
         """Length of the global feature: scale_dim per sigma."""
         return self.scale_dim * len(self.sigmas)
 
+    def require_single_scale(self) -> None:
+        """Raise for a multi-scale configuration: a single-sigma encoder would fill half a row."""
+        if self.extra_sigmas:
+            raise ValueError('a multi-scale configuration needs one encoder per sigma: use '
+                             'recognizer.make_encoder (core/multiscale.py)')
+
     def single(self, sigma: float) -> 'EncoderConfig':
         """The same configuration with one sigma and no extra scales."""
         return replace(self, sigma=sigma, extra_sigmas=())

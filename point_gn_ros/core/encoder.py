@@ -57,9 +57,7 @@ class PointGNEncoder:
     def __init__(self, cfg: EncoderConfig = _DEFAULT_CFG, device: str = 'cpu',
                  backend: Backend = 'auto', threads: int | None = None,
                  lone_threads: int | None = None) -> None:
-        if cfg.extra_sigmas:
-            raise ValueError('a multi-scale configuration needs one encoder per sigma: use '
-                             'recognizer.make_encoder (core/multiscale.py)')
+        cfg.require_single_scale()
         self.cfg = cfg
         self.device = torch.device(device)
         self.threads = max(1, int(threads or default_threads()))

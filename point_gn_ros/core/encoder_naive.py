@@ -107,9 +107,7 @@ class NaiveEncoder:
     """
 
     def __init__(self, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu') -> None:
-        if cfg.extra_sigmas:
-            raise ValueError('a multi-scale configuration needs one encoder per sigma: use '
-                             'recognizer.make_encoder (core/multiscale.py)')
+        cfg.require_single_scale()
         self.cfg = cfg
         self.device = torch.device(device)
 
