@@ -64,7 +64,7 @@ def encode_clouds(clouds: Iterable[np.ndarray] | np.ndarray, encoder: Encoder,
     cloud in the k frames of core/augment.py's group (enrollment examples; k = 1 for 'none'),
     example-major: rows i * k ... i * k + k - 1 are cloud i.
     """
-    n, yaw_align = encoder.cfg.num_points, encoder.cfg.yaw_align
+    cfg = encoder.cfg
     if total is None and hasattr(clouds, '__len__'):
         total = len(clouds)  # type: ignore[arg-type]
     bar = None
@@ -80,7 +80,8 @@ def encode_clouds(clouds: Iterable[np.ndarray] | np.ndarray, encoder: Encoder,
         batch.clear()
 
     for cloud in clouds:
-        batch.append(prepare(cloud, n, resample, seed, yaw_align))
+        batch.append(prepare(cloud, cfg.num_points, resample, seed, cfg.yaw_align,
+                             cfg.upsample))
         if len(batch) == batch_size:
             flush()
     if batch:

@@ -74,6 +74,8 @@ BAD_BANKS: dict[str, tuple[dict, str]] = {
                               r'extra_sigmas must be a list of at most 3 numbers'),
     'too many extra sigmas': ({'cfg_extra_sigmas': [0.3] * 4},
                               r'extra_sigmas must be a list of at most 3'),
+    'upsample unknown': ({'cfg_upsample': 'cubic'},
+                         r"upsample must be one of \['repeat', 'midpoint'\], got 'cubic'"),
     'class_names a string': ({'meta_class_names': 'x' * 3},
                              r'class_names must be a list of strings, got str'),
     'class_names numbers': ({'meta_class_names': [1, 2, 3]}, r'a list with int'),

@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from point_gn_ros.core.encoder_naive import fps as oracle_fps
-from point_gn_ros.core.sampling import (FPS_MAX_INPUT, canonical_yaw, fps_indices, normalize,
+from point_gn_ros.core.sampling import (FPS_MAX_INPUT, canonical_order, canonical_yaw,
+                                        fps_indices, normalize,
                                         prepare, resample)
 
 
@@ -113,3 +114,60 @@ def test_prepare_yaw_align_only_when_asked() -> None:
     np.testing.assert_array_equal(prepare(cloud), normalize(resample(cloud, 1024)))
     assert not np.allclose(prepare(cloud, yaw_align=True), prepare(cloud))
     assert np.isfinite(prepare(np.zeros((3, 3), np.float32), yaw_align=True)).all()
+
+
+@pytest.mark.parametrize('n_in', [2, 3, 16, 340, 1000, 1023])
+def test_midpoint_fill_keeps_every_point_and_adds_midpoints_of_near_neighbours(n_in: int
+                                                                               ) -> None:
+    cloud = _cloud(n_in, 7) + 5.0
+    out = resample(cloud, 1024, upsample='midpoint')
+    assert out.shape == (1024, 3) and out.dtype == np.float32
+    np.testing.assert_array_equal(out[:n_in], cloud[canonical_order(cloud)])
+    # every new point is the midpoint of a point a and one of a's nearest few others b
+    rounds = -(-(1024 - n_in) // n_in)
+    order = np.argsort(((cloud[:, None, :] - cloud[None, :, :]) ** 2).sum(-1), axis=1)
+    for m in out[n_in:]:
+        other = 2 * m[None, :] - cloud                   # b for every choice of a
+        gap = ((other[:, None, :] - cloud[None, :, :]) ** 2).sum(-1)
+        a, b = np.unravel_index(np.argmin(gap), gap.shape)
+        assert gap[a, b] < 1e-8 and a != b
+        assert b in order[a, 1:min(rounds, n_in - 1) + 1] or a in order[b, 1:rounds + 1]
+
+
+def test_midpoint_fill_stays_on_the_surface_and_spreads_its_last_round() -> None:
+    rng = np.random.default_rng(3)
+    plane = np.c_[rng.uniform(-1, 1, (400, 2)), np.zeros(400)].astype(np.float32)
+    out = resample(plane, 1024, upsample='midpoint')
+    assert np.all(out[:, 2] == 0)                       # a flat scan stays flat
+    # the partial last round (1024 - 3 x 400 < 0: 224 of 400 points) is spread over the
+    # cloud, not taken from one end of the (x, y, z) order
+    last = out[400 + 400:]
+    assert len(last) == 224 and last[:, 0].min() < -0.8 and last[:, 0].max() > 0.8
+
+
+def test_midpoint_fill_is_order_free_and_leaves_dense_clouds_alone() -> None:
+    cloud = _cloud(340, 9)
+    perm = np.random.default_rng(2).permutation(len(cloud))
+    np.testing.assert_array_equal(resample(cloud, 1024, upsample='midpoint'),
+                                  resample(cloud[perm], 1024, upsample='midpoint'))
+    dup = np.concatenate([cloud, cloud[:50]])           # exact duplicates are harmless
+    assert np.isfinite(resample(dup, 1024, upsample='midpoint')).all()
+    for n_in in (1024, 3000):
+        dense = _cloud(n_in, 4)
+        np.testing.assert_array_equal(resample(dense, 1024, upsample='midpoint'),
+                                      resample(dense, 1024))
+    np.testing.assert_array_equal(resample(cloud[:1], 1024, upsample='midpoint'),
+                                  np.repeat(cloud[:1], 1024, axis=0))
+    with pytest.raises(ValueError, match='upsample'):
+        resample(cloud, 1024, upsample='cubic')  # type: ignore[arg-type]
+
+
+def test_encoder_config_records_upsample_only_when_not_repeat() -> None:
+    from point_gn_ros.core.config import EncoderConfig
+    assert 'upsample' not in EncoderConfig().to_dict()   # old banks' metadata and cache keys
+    cfg = EncoderConfig(upsample='midpoint')
+    assert cfg.to_dict()['upsample'] == 'midpoint'
+    assert EncoderConfig.from_dict(cfg.to_dict()) == cfg
+    assert EncoderConfig.from_dict(EncoderConfig().to_dict()).upsample == 'repeat'
+    with pytest.raises(ValueError, match='upsample'):
+        EncoderConfig(upsample='cubic')

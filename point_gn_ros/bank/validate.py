@@ -101,14 +101,17 @@ def _check_number(name: str, value: Any, kind: type, lo: float, hi: float) -> st
 
 def check_encoder_config(cfg: Mapping[str, Any]) -> str | None:
     """The first problem of an encoder configuration dict, or None (unknown keys: None)."""
-    if set(cfg) - set(ENCODER_RANGES) - {'extra_sigmas'}:
+    if set(cfg) - set(ENCODER_RANGES) - {'extra_sigmas', 'upsample'}:
         return None                  # store.py: 'incomplete metadata (unknown keys)'
     for name, (kind, lo, hi) in ENCODER_RANGES.items():
         if name in cfg:
             problem = _check_number(name, cfg[name], kind, lo, hi)
             if problem:
                 return f'encoder configuration: {problem}'
-    from point_gn_ros.core.config import MAX_EXTRA_SIGMAS, EncoderConfig
+    from point_gn_ros.core.config import MAX_EXTRA_SIGMAS, UPSAMPLE_METHODS, EncoderConfig
+    if cfg.get('upsample', 'repeat') not in UPSAMPLE_METHODS:
+        return (f"encoder configuration: upsample must be one of {list(UPSAMPLE_METHODS)}, "
+                f"got {cfg['upsample']!r}"[:300])
     extra = cfg.get('extra_sigmas', [])
     if not isinstance(extra, list) or len(extra) > MAX_EXTRA_SIGMAS:
         return (f'encoder configuration: extra_sigmas must be a list of at most '

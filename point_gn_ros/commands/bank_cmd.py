@@ -8,6 +8,7 @@ from pathlib import Path
 
 from point_gn_ros.bank.selection import DEFAULT_ALPHAS, DEFAULT_WEIGHTS
 from point_gn_ros.commands.common import add_dataset_args, add_encoder_args
+from point_gn_ros.core.config import UPSAMPLE_METHODS
 
 # The paper's GPE width for real scans (ScanObjectNN); 0.4 (the default) for CAD models.
 SCANOBJECTNN_SIGMA = 0.3
@@ -30,6 +31,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='multi-scale features: also encode every cloud with these GPE sigmas '
                         'and concatenate (e.g. 0.25: +0.4 points CV on ModelNet40 at ~2x the '
                         "encoder's cost per cloud; BENCHMARKS.md)")
+    b.add_argument('--upsample', choices=UPSAMPLE_METHODS, default='midpoint',
+                   help='how clouds with fewer points than the encoder takes are filled up: '
+                        'midpoint (default: new points between neighbouring points; +2-3 '
+                        'points on single-view scans by grouped CV, BENCHMARKS.md) or repeat '
+                        '(points repeated, as banks before this option)')
     b.add_argument('--yaw-align', action='store_true',
                    help='rotate every cloud into a canonical heading about z before encoding '
                         '(yaw-invariant bank, for upright objects seen from any side)')
@@ -98,6 +104,7 @@ def _build(args: argparse.Namespace) -> int:
     overrides = {k: v for k, v in (('sigma', args.sigma), ('k', args.k)) if v is not None}
     overrides['yaw_align'] = args.yaw_align
     overrides['extra_sigmas'] = tuple(args.extra_sigmas)
+    overrides['upsample'] = args.upsample
     cfg = EncoderConfig(**overrides)
     dims = [None if d == 0 else d for d in (args.dims or [0])]
     if args.sections and not args.views:

@@ -172,7 +172,7 @@ def _load() -> float:
 
 
 def resample_rows(quick: bool, repeats: int) -> list[Row]:
-    """sampling.prepare (FPS resample + normalise) on inputs of 1k to 1M points."""
+    """sampling.prepare on inputs of 1k to 1M points (FPS) and on a 340-point scan (filled up)."""
     import numpy as np
 
     from point_gn_ros.core.sampling import prepare
@@ -186,6 +186,12 @@ def resample_rows(quick: bool, repeats: int) -> list[Row]:
         t = _median_time(lambda xyz=xyz: prepare(xyz), repeats)
         rows.append(dict(section='resample', what=f'prepare() {n:,} points -> 1024',
                          value=t * 1e3, unit='ms', note='method fps'))
+    # a single-view scan's typical size (issue 9's protocol), filled up to 1024
+    scan = rng.normal(0, 1, (340, 3)).astype(np.float32)
+    for upsample in ('repeat', 'midpoint'):
+        t = _median_time(lambda u=upsample: prepare(scan, upsample=u), repeats)
+        rows.append(dict(section='resample', what='prepare() 340 points -> 1024',
+                         value=t * 1e3, unit='ms', note=f'upsample {upsample}'))
     return rows
 
 

@@ -12,6 +12,8 @@ from collections.abc import Mapping
 ENCODER_VERSION = 1
 # More scales multiply the encoder's cost; two were measured to help (BENCHMARKS.md).
 MAX_EXTRA_SIGMAS = 3
+# How clouds with fewer points than num_points are filled up (core/sampling.py).
+UPSAMPLE_METHODS = ('repeat', 'midpoint')
 
 
 @dataclass(frozen=True)
@@ -29,6 +31,11 @@ class EncoderConfig:
     # Multi-scale features: the cloud is encoded again with each of these GPE sigmas (same
     # FPS centres and neighbours) and the features are concatenated, sigma's first.
     extra_sigmas: tuple[float, ...] = ()
+    # How a cloud of fewer than num_points points is filled up (core/sampling.py): 'repeat'
+    # (banks from before this knob) or 'midpoint' (new points between neighbours; +2-3
+    # points on single-view scans by grouped CV: BENCHMARKS.md). Complete objects of
+    # num_points points or more are unaffected.
+    upsample: str = 'repeat'
 
     def __post_init__(self) -> None:
         if self.num_points < 2 ** self.stages:
@@ -48,6 +55,9 @@ class EncoderConfig:
                 math.isfinite(s) and s > 0 for s in self.extra_sigmas):
             raise ValueError(f'extra_sigmas must be at most {MAX_EXTRA_SIGMAS} positive '
                              f'numbers, got {list(self.extra_sigmas)}')
+        if self.upsample not in UPSAMPLE_METHODS:
+            raise ValueError(f'upsample must be one of {list(UPSAMPLE_METHODS)}, '
+                             f'got {self.upsample!r}')
 
     @property
     def stage_dims(self) -> tuple[int, ...]:
@@ -85,12 +95,17 @@ class EncoderConfig:
         return replace(self, sigma=sigma, extra_sigmas=())
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict; extra_sigmas only when set, so single-scale banks are unchanged."""
+        """JSON-ready dict; extra_sigmas and upsample only when not the default.
+
+        So the banks (and feature caches) of configurations without them are unchanged.
+        """
         out = asdict(self)
         if self.extra_sigmas:
             out['extra_sigmas'] = list(self.extra_sigmas)
         else:
             del out['extra_sigmas']
+        if self.upsample == 'repeat':
+            del out['upsample']
         return out
 
     @classmethod

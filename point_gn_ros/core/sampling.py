@@ -6,7 +6,11 @@ from typing import Literal
 
 import numpy as np
 
+from point_gn_ros.core.config import UPSAMPLE_METHODS
+
 ResampleMethod = Literal['fps', 'random']
+# How a cloud with fewer points than the encoder takes is filled up (EncoderConfig.upsample).
+UpsampleMethod = Literal['repeat', 'midpoint']
 
 # FPS is O(N * n); beyond this many input points a seeded random subset is taken
 # first, so a 1M-point cloud costs milliseconds, not seconds.
@@ -68,17 +72,59 @@ def hashed_subset(xyz: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
     return idx[np.argsort(h[idx], kind='stable')]
 
 
-def resample(xyz: np.ndarray, n: int, method: ResampleMethod = 'fps', seed: int = 0) -> np.ndarray:
+def midpoint_fill(xyz: np.ndarray, n: int) -> np.ndarray:
+    """Fewer than n points -> n: every point, then midpoints with nearby points.
+
+    xyz: (N, 3) float32, 1 <= N <= n, finite -> (n, 3) float32. With the points in (x, y, z)
+    order, round r = 1, 2, ... adds the midpoint of every point and its r-th nearest other
+    point (cycling for clouds of under r + 1 points); the last, partial round takes the
+    points of a coordinate-hash subset, so its new points are spread over the cloud. New
+    points lie on the sampled surface between neighbours (repeating points would leave the
+    encoder's k neighbours of a centre only k / repeats distinct points: a sparse scan then
+    looks unlike a dense one). Deterministic and independent of the input order.
+    """
+    xyz = xyz[canonical_order(xyz)]
+    count = len(xyz)
+    if count >= n or count < 2:
+        return xyz[np.arange(n) % count]
+    from scipy.spatial import cKDTree
+    rounds = -(-(n - count) // count)
+    k = min(rounds, count - 1)
+    # k + 1 nearest including the point itself; drop it (or, with exact duplicates of it
+    # in the cloud, the farthest of the k + 1)
+    _, nb = cKDTree(xyz).query(xyz, k=k + 1)
+    nb = nb.reshape(count, k + 1)
+    is_self = nb == np.arange(count)[:, None]
+    drop = np.where(is_self.any(1), is_self.argmax(1), k)
+    keep = np.ones_like(nb, dtype=bool)
+    keep[np.arange(count), drop] = False
+    nb = nb[keep].reshape(count, k)
+    parts, missing = [xyz], n - count
+    for r in range(rounds):
+        rows = np.arange(count) if missing >= count else np.sort(hashed_subset(xyz, missing))
+        parts.append((xyz[rows] + xyz[nb[rows, r % k]]) * np.float32(0.5))
+        missing -= len(rows)
+    return np.concatenate(parts).astype(np.float32, copy=False)
+
+
+def resample(xyz: np.ndarray, n: int, method: ResampleMethod = 'fps', seed: int = 0,
+             upsample: UpsampleMethod = 'repeat') -> np.ndarray:
     """Any number of points -> exactly n points, independent of the input point order.
 
     xyz: (N, 3) float32 with N >= 1 and finite values -> (n, 3) float32.
     More points: FPS (default; geometric start, so order-free up to exact ties) or a seeded
-    subset chosen by coordinate hash. Fewer points: every point kept, then points repeated
-    in (x, y, z) order (never zero padding); exactly n: the points in (x, y, z) order. So a
-    shuffled cloud gives the same array, bit for bit (FPS: up to exact distance ties).
+    subset chosen by coordinate hash. Fewer points: every point kept, then (upsample
+    'repeat') points repeated in (x, y, z) order, never zero padding, or ('midpoint',
+    `midpoint_fill`) midpoints of neighbouring points. Exactly n: the points in (x, y, z)
+    order. So a shuffled cloud gives the same array, bit for bit (FPS: up to exact
+    distance ties).
     """
     xyz = np.ascontiguousarray(xyz, dtype=np.float32)
     count = xyz.shape[0]
+    if count < n and upsample == 'midpoint':
+        return midpoint_fill(xyz, n)
+    if upsample not in UPSAMPLE_METHODS:
+        raise ValueError(f'upsample must be one of {UPSAMPLE_METHODS}, got {upsample!r}')
     if count <= n:   # exactly n too: the encoder's sums and tie-breaks then see one order
         return xyz[canonical_order(xyz)[np.arange(n) % count]]
     if method == 'random':
@@ -134,7 +180,8 @@ def canonical_yaw(xyz: np.ndarray) -> np.ndarray:
 
 
 def prepare(xyz: np.ndarray, n: int = 1024, method: ResampleMethod = 'fps',
-            seed: int = 0, yaw_align: bool = False) -> np.ndarray:
+            seed: int = 0, yaw_align: bool = False, upsample: UpsampleMethod = 'repeat'
+            ) -> np.ndarray:
     """Resample, normalise (and optionally yaw-align): every cloud before the encoder."""
-    out = normalize(resample(xyz, n, method, seed))
+    out = normalize(resample(xyz, n, method, seed, upsample))
     return canonical_yaw(out) if yaw_align else out
