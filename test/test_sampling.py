@@ -160,6 +160,8 @@ def test_midpoint_fill_is_order_free_and_leaves_dense_clouds_alone() -> None:
                                   np.repeat(cloud[:1], 1024, axis=0))
     with pytest.raises(ValueError, match='upsample'):
         resample(cloud, 1024, upsample='cubic')  # type: ignore[arg-type]
+    huge = np.full((20, 3), 3e38, np.float32) * np.linspace(0.9, 1, 20, dtype=np.float32)[:, None]
+    assert np.isfinite(prepare(huge, upsample='midpoint')).all()    # no overflow to inf
 
 
 def test_encoder_config_records_upsample_only_when_not_repeat() -> None:

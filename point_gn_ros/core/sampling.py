@@ -102,7 +102,8 @@ def midpoint_fill(xyz: np.ndarray, n: int) -> np.ndarray:
     parts, missing = [xyz], n - count
     for r in range(rounds):
         rows = np.arange(count) if missing >= count else np.sort(hashed_subset(xyz, missing))
-        parts.append((xyz[rows] + xyz[nb[rows, r % k]]) * np.float32(0.5))
+        # halves first: a + b would overflow float32 for finite points near +-3e38
+        parts.append(xyz[rows] * np.float32(0.5) + xyz[nb[rows, r % k]] * np.float32(0.5))
         missing -= len(rows)
     return np.concatenate(parts).astype(np.float32, copy=False)
 
