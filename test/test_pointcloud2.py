@@ -21,7 +21,6 @@ from point_gn_ros.pointcloud2 import (
     UINT16,
     UINT32,
     DecodedCloud,
-    _structured_view,
     classification_fields,
     decode_classifications,
     decode_xyz,
@@ -30,6 +29,7 @@ from point_gn_ros.pointcloud2 import (
     split_segments,
     xyz_to_pointcloud2,
 )
+from point_gn_ros.pointcloud2.decode import _structured_view
 
 _FMT = {INT8: 'b', UINT8: 'B', INT16: 'h', UINT16: 'H', INT32: 'i', UINT32: 'I',
         FLOAT32: 'f', FLOAT64: 'd'}

@@ -90,7 +90,7 @@ def pack_cloud(header: Any, cols: list[tuple[str, np.ndarray]], *, big_endian: b
     """PointCloud2 from named (N,) columns, any byte order, padding after each point/row."""
     from sensor_msgs.msg import PointCloud2, PointField
 
-    from point_gn_ros.pointcloud2 import _DATATYPE_OF
+    from point_gn_ros.pointcloud2.decode import _DATATYPE_OF
 
     order = '>' if big_endian else '<'
     n = len(cols[0][1])
