@@ -90,15 +90,9 @@ def midpoint_fill(xyz: np.ndarray, n: int) -> np.ndarray:
     from scipy.spatial import cKDTree
     rounds = -(-(n - count) // count)
     k = min(rounds, count - 1)
-    # k + 1 nearest including the point itself; drop it (or, with exact duplicates of it
-    # in the cloud, the farthest of the k + 1)
-    _, nb = cKDTree(xyz).query(xyz, k=k + 1)
-    nb = nb.reshape(count, k + 1)
-    is_self = nb == np.arange(count)[:, None]
-    drop = np.where(is_self.any(1), is_self.argmax(1), k)
-    keep = np.ones_like(nb, dtype=bool)
-    keep[np.arange(count), drop] = False
-    nb = nb[keep].reshape(count, k)
+    # k + 1 nearest, the first at distance 0: the point itself, or an exact copy of it,
+    # which has the same coordinates, so dropping the first column drops "itself" either way
+    nb = cKDTree(xyz).query(xyz, k=k + 1)[1].reshape(count, k + 1)[:, 1:]
     parts, missing = [xyz], n - count
     for r in range(rounds):
         rows = np.arange(count) if missing >= count else np.sort(hashed_subset(xyz, missing))
