@@ -37,6 +37,7 @@ import torch
 from point_gn_ros.bank.builder import feature_cache_path
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, refit
+from point_gn_ros.bank.head import lda_noise_trace
 from point_gn_ros.bank.vote_prior import META_KEY
 from point_gn_ros.core.config import ENCODER_VERSION
 from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
@@ -51,15 +52,37 @@ MODELNET10 = ('bathtub', 'bed', 'chair', 'desk', 'dresser', 'monitor', 'night_st
 BETAS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
-def subset(bf: BankFile, keep_obj: np.ndarray) -> BankFile:
-    """The bank without some train objects: keep_obj (S,) bool over the source objects."""
-    vk = np.repeat(keep_obj, len(bf.views.bank) // len(keep_obj))
+def subset(bf: BankFile, keep_obj: np.ndarray, raw: np.ndarray) -> BankFile:
+    """The bank without some train objects: keep_obj (S,) bool over the source objects.
+
+    raw: the build's cached features (S * per, D), complete then scans per object: a wide
+    LDA's class means lose the removed rows (its covariance is kept, as an enrollment does).
+    """
+    per = len(raw) // len(keep_obj)
+    vk = np.repeat(keep_obj, per - 1)
+    gone = np.flatnonzero(~keep_obj)
     b, v = bf.bank, bf.views.bank
+    scan_rows = (per * gone[:, None] + np.arange(1, per)).ravel()
     views = replace(v, features=v.features[torch.from_numpy(vk)],
-                    labels=v.labels[torch.from_numpy(vk)])
+                    labels=v.labels[torch.from_numpy(vk)],
+                    head=without_rows(v, raw[scan_rows], v.labels[torch.from_numpy(~vk)]))
     main = replace(b, features=b.features[torch.from_numpy(keep_obj)],
-                   labels=b.labels[torch.from_numpy(keep_obj)], views=views)
+                   labels=b.labels[torch.from_numpy(keep_obj)], views=views,
+                   head=without_rows(b, raw[per * gone], b.labels[torch.from_numpy(~keep_obj)]))
     return BankFile(main, bf.stored[keep_obj], views=BankFile(views, bf.views.stored[vk]))
+
+
+def without_rows(bank, raw_rows: np.ndarray, labels: torch.Tensor):  # noqa: ANN001, ANN201
+    """The section's head with a wide LDA's class means less the rows raw_rows (m, D)."""
+    head = bank.head
+    if head is None or not head.lda_wide:
+        return head
+    x = bank.transform.standardized(torch.from_numpy(np.asarray(raw_rows))).double()
+    n = torch.bincount(bank.labels, minlength=bank.num_classes).double()
+    m = torch.bincount(labels, minlength=bank.num_classes).double()
+    sums = head.lda_means.double() * n[:, None]
+    sums.index_add_(0, labels, -x)
+    return replace(head, lda_means=(sums / (n - m).clamp_min(1)[:, None]).float())
 
 
 def refitted(bf: BankFile, policy: RefitPolicy) -> BankFile:
@@ -82,6 +105,36 @@ def with_beta(bf: BankFile, beta: float, names: list[str], scope: str) -> BankFi
     views = put(bf.bank.views)
     return BankFile(replace(put(bf.bank), views=views), bf.stored,
                     views=BankFile(views, bf.views.stored))
+
+
+def with_debias(bf: BankFile, f: float, names: list[str]) -> BankFile:
+    """Both sections with f x the mean-noise correction on the LDA bias of `names`.
+
+    (wide-LDA sections only; bank/head.py `lda_noise_trace`): bias_c += f t / (2 n_c).
+    """
+    def put(bank):  # noqa: ANN001, ANN202
+        head = bank.head
+        if f == 0 or head is None or not head.lda_wide:
+            return bank
+        t = TRACES.setdefault(id(head.lda_precision), lda_noise_trace(
+            head.lda_precision, float(bank.meta['head']['lda_alpha'])))
+        n = torch.bincount(bank.labels, minlength=bank.num_classes).double()
+        bias = head.lda_bias.clone()
+        for name in names:
+            c = bank.class_names.index(name)
+            bias[c] += float(f * t / (2 * n[c]))
+        return replace(bank, head=replace(head, lda_bias=bias))
+    views = put(bf.bank.views)
+    return BankFile(replace(put(bf.bank), views=views), bf.stored,
+                    views=BankFile(views, bf.views.stored))
+
+
+TRACES: dict[int, float] = {}
+
+
+def key(g: tuple[float, float]) -> str:
+    """Table key of (beta, debias): 'b=1.2' without the correction, else 'b=1.2,f=0.5'."""
+    return f'b={g[0]:g}' + (f',f={g[1]:g}' if g[1] else '')
 
 
 def predict(bf: BankFile, feats: torch.Tensor) -> np.ndarray:
@@ -137,14 +190,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries')
     p.add_argument('--scope', choices=('enrolled', 'all'), default='enrolled')
     p.add_argument('--betas', type=float, nargs='+', default=list(BETAS))
+    p.add_argument('--debias', type=float, nargs='+', default=[0.0],
+                   help='fractions f of the wide LDA mean-noise correction of enrolled classes '
+                        '(bank/head.py lda_noise_trace), each crossed with every beta')
     p.add_argument('--other-scans', choices=('bank', 'random'), default='bank',
                    help="existing-class scans: the bank's own scans of each held-out object, "
                         "or one scan from a random viewpoint (enroll_study's existing-class "
                         'protocol, seed [7, object])')
     p.add_argument('--json', default=None)
+    p.add_argument('--bank', default=None, help='bank (default: the shipped default bank)')
     args = p.parse_args(argv)
 
-    bf = BankFile.load()
+    bf = BankFile.load(args.bank)
     train = open_dataset(args.data, split='train')
     labels = np.asarray(train.labels)
     n_obj = len(labels)
@@ -158,7 +215,8 @@ def main(argv: list[str] | None = None) -> int:
         bf.views.bank.labels.numpy(), np.repeat(labels, views)), 'feature cache / bank mismatch'
     policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior)
     encoder = make_encoder(bf.bank.config)
-    res = {b: {'inst': [], 'complete': [], 'scan': []} for b in args.betas}
+    grid = [(b, f) for f in args.debias for b in args.betas]
+    res = {g: {'inst': [], 'complete': [], 'scan': []} for g in grid}
     for r in range(args.rounds):
         rng = np.random.default_rng(100 + r)
         inst = [int(rng.choice(np.flatnonzero(labels == train.class_names.index(c))))
@@ -166,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         others = rng.choice(np.setdiff1d(np.arange(n_obj), inst), args.others, replace=False)
         keep = np.ones(n_obj, dtype=bool)
         keep[inst] = keep[others] = False
-        cur = refitted(subset(bf, keep), policy)
+        cur = refitted(subset(bf, keep, raw), policy)
         q_full = torch.from_numpy(np.asarray(raw[per * others]))
         if args.other_scans == 'bank':
             q_scan = torch.from_numpy(np.concatenate([raw[per * o + 1:per * o + per]
@@ -185,26 +243,27 @@ def main(argv: list[str] | None = None) -> int:
             names.append(name)
             q_ids += [cur.bank.class_names.index(name)] * args.query_views
         q_inst, q_ids = torch.cat(query), np.asarray(q_ids)
-        for b in args.betas:
-            bb = with_beta(cur, b, names, args.scope)
-            res[b]['inst'].append(float((predict(bb, q_inst) == q_ids).mean()))
+        for b, fd in grid:
+            bb = with_beta(with_debias(cur, fd, names), b, names, args.scope)
+            res[b, fd]['inst'].append(float((predict(bb, q_inst) == q_ids).mean()))
             for kind, q, t in (('complete', q_full, t_full), ('scan', q_scan, t_scan)):
                 now = predict(bb, q) == t
-                res[b][kind].append(100 * float((right0[kind] & ~now).mean()
-                                                - (~right0[kind] & now).mean()))
+                res[b, fd][kind].append(100 * float((right0[kind] & ~now).mean()
+                                                    - (~right0[kind] & now).mean()))
         print(f'round {r}: ' + ', '.join(
-            f'b={b:g} inst {res[b]["inst"][-1]:.3f} drop {res[b]["complete"][-1]:.2f}/'
-            f'{res[b]["scan"][-1]:.2f}' for b in args.betas), file=sys.stderr)
-    table = {str(b): {'instance_accuracy': float(np.mean(v['inst'])),
+            f'{key(g)} inst {res[g]["inst"][-1]:.3f} drop {res[g]["complete"][-1]:.2f}/'
+            f'{res[g]["scan"][-1]:.2f}' for g in grid), file=sys.stderr)
+    table = {key(g): {'instance_accuracy': float(np.mean(v['inst'])),
                       'drop_complete_points': float(np.mean(v['complete'])),
-                      'drop_scan_points': float(np.mean(v['scan']))} for b, v in res.items()}
-    ok = [b for b in args.betas if table[str(b)]['drop_complete_points'] <= args.max_drop
-          and table[str(b)]['drop_scan_points'] <= args.max_drop]
-    chosen = max(ok, key=lambda b: (table[str(b)]['instance_accuracy'], -b)) if ok else 0.0
+                      'drop_scan_points': float(np.mean(v['scan']))} for g, v in res.items()}
+    ok = [g for g in grid if table[key(g)]['drop_complete_points'] <= args.max_drop
+          and table[key(g)]['drop_scan_points'] <= args.max_drop]
+    chosen = max(ok, key=lambda g: (table[key(g)]['instance_accuracy'], -g[0], -g[1])) \
+        if ok else (0.0, 0.0)
     out = {'rounds': args.rounds, 'others': args.others, 'scope': args.scope,
            'other_scans': args.other_scans,
            'lda_prior': args.lda_prior, 'max_drop': args.max_drop, 'table': table,
-           'chosen_beta': chosen}
+           'chosen_beta': chosen[0], 'chosen_debias': chosen[1]}
     print(json.dumps(out, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2) + '\n')

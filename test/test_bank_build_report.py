@@ -71,3 +71,14 @@ def test_a_class_without_examples_is_an_error(tmp_path: Path,
     assert cli_main(['bank', 'build', str(root), '-o', str(tmp_path / 'b.npz')]) == 2
     err = capsys.readouterr().err
     assert 'empty_class' in err and 'point_gn: error: ' in err
+
+
+def test_wide_lda_flag_reaches_the_cv(tmp_path: Path) -> None:
+    from point_gn_ros.bank.store import FeatureBank
+    root = _tree(tmp_path / 'data')
+    out = tmp_path / 'wide.npz'
+    assert cli_main(['bank', 'build', str(root), '-o', str(out), '--folds', '3', '--dims', '3',
+                     '--standardize', 'standardize', '--wide-lda', 'all']) == 0
+    sel = FeatureBank.load(out).meta['selection']
+    assert sel['grid']['wide_lda'] is True and sel['dims'] == 3
+    assert all('lda_wide' in row for row in sel['table'])

@@ -350,7 +350,7 @@ def test_incremental_lda_refit_matches_a_full_refit() -> None:
     fast = plain.with_stats()
     assert fast.stats is not None and plain.stats is None
     # computed in blocks of rows (a large bank's float64 rows never all at once): the same sums
-    with mock.patch('point_gn_ros.bank.enroll._BLOCK_ROWS', 7):
+    with mock.patch('point_gn_ros.bank.bank_file._BLOCK_ROWS', 7):
         blocked = plain.with_stats().stats
     for a, b in ((fast.stats.gram, blocked.gram), (fast.stats.sums, blocked.sums)):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

@@ -63,7 +63,8 @@ def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel:
     tf = FeatureTransform.fit(feats, sel.standardize, sel.dims)
     z = tf(feats)
     head = fit_head(z, torch.as_tensor(np.asarray(labels), dtype=torch.int64), num_classes,
-                    sel.gamma, sel.alpha, sel.lda_alpha, sel.fusion_weight, sel.temperature)
+                    sel.gamma, sel.alpha, sel.lda_alpha, sel.fusion_weight, sel.temperature,
+                    x=tf.standardized(feats) if sel.lda_wide else None)
     return tf, head, head.vote_space(z)
 
 
@@ -78,13 +79,14 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                alphas: tuple[float, ...] = DEFAULT_ALPHAS,
                weights: tuple[float, ...] = DEFAULT_WEIGHTS,
                lda_alphas: tuple[float, ...] = DEFAULT_LDA_ALPHAS,
-               cv_subset: np.ndarray | None = None) -> FeatureBank:
+               cv_subset: np.ndarray | None = None, wide_lda: bool = False) -> FeatureBank:
     """Encode `dataset`, choose transform and head by k-fold CV on it, return the bank.
 
     groups: (N,) int or None; entries sharing a group (an object and its simulated views)
     stay in one CV fold. alphas=() gives the plain kernel vote (format-1 behaviour).
     cv_subset: (M,) int64 entry indices the CV runs on (default all; CV cost grows with the
     square of the bank): the knobs chosen there are then fitted on every entry.
+    wide_lda: CV also weighs an LDA on every standardised encoder dim (bank/head.py).
     """
     encoder = encoder or make_encoder(cfg, device)
     if feats is None:
@@ -94,7 +96,7 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
     sel = select(feats[torch.from_numpy(cv)], labels[cv], len(dataset.class_names), gammas,
                  standardize_options, dims_options, folds,
                  groups=None if groups is None else np.asarray(groups)[cv], alphas=alphas,
-                 weights=weights, lda_alphas=lda_alphas)
+                 weights=weights, lda_alphas=lda_alphas, wide_lda=wide_lda)
     tf, head, vote_feats = fit_selected(feats, labels, len(dataset.class_names), sel)
     counts = Counter(labels.tolist())
     meta = {
@@ -111,7 +113,8 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                       'grid': {'gammas': list(gammas),
                                'standardize': list(standardize_options),
                                'dims': list(dims_options), 'alphas': list(alphas),
-                               'lda_alphas': list(lda_alphas), 'weights': list(weights)}},
+                               'lda_alphas': list(lda_alphas), 'weights': list(weights),
+                               'wide_lda': bool(wide_lda)}},
         'head': sel.head_meta(),
     }
     if sel.heldout_novelty is not None:

@@ -217,7 +217,8 @@ class Classifier:
 
     def _section(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The section's own head: (B, D) raw features -> probability (B, C), novelty (B,)."""
-        return self.head.evaluate_with(self.transform(features), self.search, self.vote_bias)
+        x = self.transform.standardized(features) if self.head.lda_wide else None
+        return self.head.evaluate_with(self.transform(features), self.search, self.vote_bias, x)
 
     @torch.no_grad()
     def scores(self, features: torch.Tensor) -> torch.Tensor:

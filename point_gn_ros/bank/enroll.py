@@ -3,6 +3,8 @@
 Every operation is copy-on-write: it returns a NEW FeatureBank and never mutates the one it was
 given, so a reader holding the old bank (the node's worker, mid micro-batch) keeps computing
 with one consistent version. `LiveBank` (bank/live.py) serialises writers and swaps versions.
+The operations take and give a `BankFile` (bank/bank_file.py): the bank with the exact values
+its file holds, saved atomically.
 
 The bank stores its rows in the vote's space (bank/store.py), so new examples go through the
 bank's own transform (and head whitening); what depends on the entries is refreshed by
@@ -24,18 +26,18 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from datetime import datetime, UTC
 import copy
-import os
-import threading
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import torch
 
-from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, ScatterStats,
-                                     active_view, example_counts, refit, vote_to_z)
+from point_gn_ros.bank.bank_file import (BankFile, from_stored, refitted_file, save_atomic,
+                                         stored_dtype)
+from point_gn_ros.bank.head import wide_means_add, wide_means_remove
+from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, active_view,
+                                     example_counts, refit, vote_to_z)
 from point_gn_ros.bank.rows import append_rows
-from point_gn_ros.bank.store import FeatureBank, quantized, unpack_int4
+from point_gn_ros.bank.store import FeatureBank, quantized
 from point_gn_ros.bank.vote_prior import is_listed, with_listed, without
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.errors import PointGNError
@@ -124,88 +126,6 @@ def predictable(bank: FeatureBank, min_examples: int) -> list[str]:
 # ------------------------------------------------------------------------------ operations
 
 
-# Rows per block when a pass goes over a whole bank (scatter statistics, the stored-rows
-# check): a large section's float temporaries stay small.
-_BLOCK_ROWS = 8192
-
-@dataclass(frozen=True)
-class BankFile:
-    """A bank and the exact feature values its file holds (or will hold once saved).
-
-    stored: (N, d) float16, float32 or int8, the `features` array of the file (unpacked
-    to int8 values for an int4 file: bank.meta['stored_dtype'] says which). Invariant:
-    bank.features == normalize(stored) row by row, computed as `FeatureBank.load` does, so
-    save + load gives back the same bank bit for bit. (Re-casting the normalised features
-    is not enough: rounding to float16 and re-normalising is not idempotent.)
-    """
-
-    bank: FeatureBank
-    stored: np.ndarray
-    # Scatter statistics of the rows for a cheap LDA refit (not saved; see `with_stats`).
-    stats: ScatterStats | None = field(default=None, compare=False, repr=False)
-    # A two-section bank's scan section (bank.views), with its own stored values.
-    views: 'BankFile | None' = None
-
-    @classmethod
-    def load(cls, path: str | os.PathLike[str] | None = None,
-             expected_config: Any = None) -> 'BankFile':
-        """Read a bank file (None: the shipped default) keeping its stored feature values."""
-        return cls._with_file_values(FeatureBank.load(path, expected_config))
-
-    @classmethod
-    def of_loaded(cls, bank: FeatureBank) -> 'BankFile':
-        """A bank loaded earlier, with its file's stored values when they still give its rows.
-
-        Else (the file changed or went away since) the values are re-derived (`of`).
-        """
-        if bank.path is not None:
-            try:
-                bf = cls._with_file_values(bank)
-                if _matches(bf.stored, bank.features) and (
-                        bf.views is None or _matches(bf.views.stored, bank.views.features)):
-                    return bf
-            except (OSError, KeyError, ValueError):
-                pass
-        return cls.of(bank)
-
-    @classmethod
-    def _with_file_values(cls, bank: FeatureBank) -> 'BankFile':
-        with np.load(bank.path, allow_pickle=False) as z:
-            stored = _unpacked(bank, z['features'])
-            views = None if bank.views is None else cls(
-                bank.views, _unpacked(bank.views, z['views_features']))
-        return cls(bank, stored, views=views)
-
-    @classmethod
-    def of(cls, bank: FeatureBank, dtype: str | None = None) -> 'BankFile':
-        """Wrap a bank never saved: features re-derived from their rounded stored values."""
-        dtype = dtype or bank.meta.get('stored_dtype', 'float32')
-        stored = quantized(bank.features, dtype)
-        meta = dict(bank.meta, stored_dtype=dtype)
-        views = None if bank.views is None else cls.of(bank.views, dtype)
-        out = replace(bank, features=_from_stored(stored), meta=meta,
-                      views=None if views is None else views.bank)
-        return cls(out, stored, views=views)
-
-    def with_stats(self) -> 'BankFile':
-        """The same, with ScatterStats when the bank's head has an LDA part (one pass)."""
-        head = self.bank.head
-        views = None if self.views is None else self.views.with_stats()
-        if self.stats is not None or head is None or head.lda_coef is None:
-            return self if views is self.views else replace(self, views=views)
-        # In blocks of rows: a 79k-row scan section in float64 would need ~0.5 GB at once.
-        u, labels, stats = self.bank.features, self.bank.labels, None
-        for i in range(0, len(u), _BLOCK_ROWS):
-            part = ScatterStats.of(vote_to_z(u[i:i + _BLOCK_ROWS], head),
-                                   labels[i:i + _BLOCK_ROWS], self.bank.num_classes)
-            stats = part if stats is None else stats.merge(part)
-        return replace(self, stats=stats, views=views)
-
-    def save(self, path: str | os.PathLike[str]) -> Path:
-        """Atomic write of exactly this bank (see `save_atomic`)."""
-        return save_atomic(self, path)
-
-
 def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
                  source: str = 'api', policy: RefitPolicy | None = None,
                  when: datetime | None = None, augment: str = 'none') -> EnrollResult:
@@ -238,8 +158,8 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
         raise EnrollError('features hold non-finite values')
     z_new = bank.transform(features.float().cpu())                  # (M, d) unit rows
     u_new = z_new if bank.head is None else bank.head.vote_space(z_new)
-    stored_new = quantized(u_new, _dtype(bank, bf.stored))
-    new = _from_stored(stored_new)                                   # (M, d) unit rows
+    stored_new = quantized(u_new, stored_dtype(bank, bf.stored))
+    new = from_stored(stored_new)                                    # (M, d) unit rows
     names = list(bank.class_names)
     new_class = class_name not in names
     if new_class:
@@ -260,11 +180,13 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
         meta['augmented_entries'] = aug
     # z of the new rows as a full refit would recover them from the stored values.
     stats = None if bf.stats is None else bf.stats.add(vote_to_z(new, bank.head), cid)
+    head = wide_means_add(bank.head, bank.transform.standardized(features.float().cpu()), cid,
+                          int((bank.labels == cid).sum()))
     out, moved = refit(replace(bank, features=feats, labels=labels, class_names=names,
-                               meta=meta, path=None), policy, stats)
+                               meta=meta, path=None, head=head), policy, stats)
     stored = np.concatenate([bf.stored, stored_new])
-    return EnrollResult(_restore(out, stored, moved, stats), 'add', class_name, len(new),
-                        new_class, tuple(dups), n_dups, out.meta['refit'], augment,
+    return EnrollResult(refitted_file(out, stored, moved, stats), 'add', class_name,
+                        len(new), new_class, tuple(dups), n_dups, out.meta['refit'], augment,
                         len(new) // k)
 
 
@@ -296,9 +218,10 @@ def remove_class(bf: BankFile, class_name: str, source: str = 'api',
     stats = None if bf.stats is None else bf.stats.remove(
         vote_to_z(bank.features[~keep], bank.head), cid)
     out, moved = refit(replace(bank, features=bank.features[keep], labels=labels,
-                               class_names=names, meta=meta, path=None), policy, stats)
-    return EnrollResult(_restore(out, bf.stored[keep.numpy()], moved, stats), 'remove',
-                        class_name, removed, False, (), 0, out.meta['refit'])
+                               class_names=names, meta=meta, path=None,
+                               head=wide_means_remove(bank.head, cid)), policy, stats)
+    return EnrollResult(refitted_file(out, bf.stored[keep.numpy()], moved, stats),
+                        'remove', class_name, removed, False, (), 0, out.meta['refit'])
 
 
 def near_duplicates(new: torch.Tensor, bank: FeatureBank, class_id: int,
@@ -326,68 +249,7 @@ def near_duplicates(new: torch.Tensor, bank: FeatureBank, class_id: int,
     return found[:_MAX_LISTED], len(flagged)
 
 
-def save_atomic(bf: BankFile, path: str | os.PathLike[str]) -> Path:
-    """Write the bank so a crash at any moment leaves either the old file or the new one.
-
-    Serialised into a unique temporary file in the target directory, fsync'ed, renamed over
-    `path`, then the directory fsync'ed (so the rename itself survives a power cut). The
-    features written are `bf.stored` exactly, so loading the file gives `bf.bank` bit for bit.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f'.{path.name}.{os.getpid()}.{threading.get_ident():x}.tmp.npz')
-    # Casting float32 copies of the stored values back to their dtype is exact.
-    exact = replace(bf.bank, features=torch.from_numpy(bf.stored.astype(np.float32)))
-    if bf.views is not None:
-        exact = replace(exact, views=replace(
-            bf.views.bank, features=torch.from_numpy(bf.views.stored.astype(np.float32))))
-    try:
-        exact.save(tmp, dtype=_dtype(bf.bank, bf.stored))
-        with open(tmp, 'rb') as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
-    return path
-
-
 # ------------------------------------------------------------------------------ helpers
-
-
-def _restore(bank: FeatureBank, stored: np.ndarray, moved: bool,
-             stats: ScatterStats | None) -> BankFile:
-    """The BankFile of a refitted bank: stored values re-derived only if the rows moved.
-
-    The scatter statistics live in z space, which re-whitening does not change.
-    """
-    if not moved:          # rows already are normalize(stored), row by row
-        return BankFile(bank, stored, stats)
-    stored = quantized(bank.features, _dtype(bank, stored))
-    return BankFile(replace(bank, features=_from_stored(stored)), stored, stats)
-
-
-def _dtype(bank: FeatureBank, stored: np.ndarray) -> str:
-    """The file dtype of stored values: int4 files keep theirs unpacked as int8."""
-    return 'int4' if bank.meta.get('stored_dtype') == 'int4' else str(stored.dtype)
-
-
-def _unpacked(bank: FeatureBank, stored: np.ndarray) -> np.ndarray:
-    """A file's `features` array as BankFile keeps it (int4: unpacked to int8 values)."""
-    return unpack_int4(stored, bank.features.shape[1]) if _dtype(bank, stored) == 'int4' \
-        else stored
-
-
-def _matches(stored: np.ndarray, features: torch.Tensor) -> bool:
-    """Whether rows are exactly the normalised stored values (by blocks: no second copy)."""
-    return stored.shape == tuple(features.shape) and all(
-        torch.equal(_from_stored(stored[i:i + _BLOCK_ROWS]), features[i:i + _BLOCK_ROWS])
-        for i in range(0, len(stored), _BLOCK_ROWS))
 
 
 def _both_sections(op, bf: BankFile, *args: Any, when: datetime | None = None,  # noqa: ANN001
@@ -404,11 +266,6 @@ def _both_sections(op, bf: BankFile, *args: Any, when: datetime | None = None,  
     views = op(bf.views, *args, when=when, **kwargs)
     bank = replace(main.bank, views=views.bank, gate=bf.bank.gate)
     return replace(main, file=replace(main.file, bank=bank, views=views.file))
-
-
-def _from_stored(stored: np.ndarray) -> torch.Tensor:
-    """(M, d) stored values -> unit rows, exactly as `FeatureBank.load` computes them."""
-    return torch.nn.functional.normalize(torch.from_numpy(stored.astype(np.float32)), dim=1)
 
 
 def _check_name(name: str) -> str:

@@ -13,6 +13,12 @@ Fitted from the bank alone (no gradient training). On transformed bank features 
   probability  softmax(fused / T)                          T: temperature by CV log-loss
   novelty      1 - max_i cos(u, u_i)                       in [0, 2]; 0 = a bank entry
 
+A wide LDA (`lda_wide`) fits the LDA on the transform's standardised rows before the PCA
+projection (x = `FeatureTransform.standardized`, all D encoder dims) instead of on z: the PCA
+keeps the directions of most spread, not those that separate classes best. Its coefficients
+are (C, D); it keeps its precision Sigma_a^-1 (D, D) and class means (C, D) so an enrollment
+can add a class in closed form under the kept covariance (bank/refit.py).
+
 The plain kernel vote is the case W = None (vote on z), w = 0, T = 1: its
 probability is exactly the vote share. The bank stores its entries already
 whitened (u_i), so a query costs one (d, d) product more than the plain vote.
@@ -20,17 +26,20 @@ whitened (u_i), so a query costs one (d, d) product more than the plain vote.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 import torch
 
+# The LDA's algebra lives in bank/lda.py; re-exported here for the head's users.
+from point_gn_ros.bank.lda import (CovarianceFit, lda_from_means, lda_noise_trace,  # noqa: F401
+                                   wide_means_add, wide_means_remove)
+
 # Upper bound on queries x bank entries held at once (float32 similarity block).
 _MAX_BLOCK = 1 << 24
 # exp() of a kernel logit this far below the best entry underflows float32: floor there.
 _TINY = float(torch.finfo(torch.float32).tiny)
-_ABSENT_LOG_PRIOR = -1e4
 # Kernel logits are floored here (relative to the best entry) before exp(): below it
 # exp() gives float32 denormals, which are many times slower to add, and the mass is
 # negligible beside the best entry's 1.
@@ -42,7 +51,9 @@ _EXP_FLOOR = float(np.exp(_LOGIT_FLOOR))
 class Head:
     """A fitted head (see module docstring). Tensors float32 on one device.
 
-    whiten: (d, d) or None; lda_coef: (C, d) or None; lda_bias: (C,) or None.
+    whiten: (d, d) or None; lda_coef: (C, d) or None ((C, D) when lda_wide); lda_bias:
+    (C,) or None. lda_wide: the LDA reads the standardised rows x (B, D), not z;
+    lda_precision (D, D) and lda_means (C, D): what an enrollment refits it from.
     """
 
     gamma: float
@@ -51,6 +62,10 @@ class Head:
     lda_bias: torch.Tensor | None = None
     fusion_weight: float = 0.0
     temperature: float = 1.0
+    lda_wide: bool = False
+    lda_precision: torch.Tensor | None = None
+    lda_means: torch.Tensor | None = None
+    lda_trace: float = 0.0       # wide LDA: tr(Sigma_a^-1 Sigma), see lda_noise_trace
 
     @property
     def is_plain_vote(self) -> bool:
@@ -60,7 +75,8 @@ class Head:
         def mv(t: torch.Tensor | None) -> torch.Tensor | None:
             return None if t is None else t.to(device)
         return Head(self.gamma, mv(self.whiten), mv(self.lda_coef), mv(self.lda_bias),
-                    self.fusion_weight, self.temperature)
+                    self.fusion_weight, self.temperature, self.lda_wide,
+                    mv(self.lda_precision), mv(self.lda_means), self.lda_trace)
 
     def vote_space(self, z: torch.Tensor) -> torch.Tensor:
         """z: (B, d) transformed unit rows -> (B, d) rows the kernel vote compares."""
@@ -75,27 +91,32 @@ class Head:
         return torch.log_softmax(z @ self.lda_coef.T + self.lda_bias, dim=1)
 
     def evaluate(self, z: torch.Tensor, bank_u: torch.Tensor, bank_labels: torch.Tensor,
-                 num_classes: int) -> tuple[torch.Tensor, torch.Tensor]:
+                 num_classes: int, x: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """z: (B, d) transformed queries; bank_u: (N, d) vote-space bank rows.
 
-        -> probability (B, C) float32 (rows sum to 1), novelty (B,) float32.
+        x: (B, D) standardised rows, needed by a wide LDA. -> probability (B, C) float32
+        (rows sum to 1), novelty (B,) float32.
         """
-        return self.evaluate_with(z, ExactSearch(bank_u, bank_labels, num_classes))
+        return self.evaluate_with(z, ExactSearch(bank_u, bank_labels, num_classes), x=x)
 
     def evaluate_with(self, z: torch.Tensor, search: 'VoteSearch',
-                      vote_bias: torch.Tensor | None = None
+                      vote_bias: torch.Tensor | None = None, x: torch.Tensor | None = None
                       ) -> tuple[torch.Tensor, torch.Tensor]:
         """`evaluate` with the kernel vote from `search` (exact or bank/search.py's index).
 
         z: (B, d) transformed queries -> probability (B, C), novelty (B,), float32.
         vote_bias: optional (C,) added to the log vote (bank/vote_prior.py); None: none.
+        x: (B, D) standardised rows (`FeatureTransform.standardized`), read by a wide LDA.
         """
         if z.shape[0] == 0:
             return torch.zeros(0, search.num_classes), torch.zeros(0)
         fused, best = search.log_votes(self.vote_space(z), self.gamma)
         if vote_bias is not None:    # a class-size prior on the vote (-inf stays -inf)
             fused = fused + vote_bias.to(fused.device)
-        lda = self.lda_log_probs(z)
+        if self.lda_wide and x is None:
+            raise ValueError('a wide-LDA head needs the standardised rows x')
+        lda = self.lda_log_probs(x if self.lda_wide else z)
         if lda is not None:
             fused = fused + self.fusion_weight * lda
         prob = torch.softmax(fused / self.temperature, dim=1)
@@ -177,122 +198,34 @@ def log_vote_shares_grid(sims: torch.Tensor, bank_labels: torch.Tensor, num_clas
     return out
 
 
-@dataclass
-class CovarianceFit:
-    """Class means and the eigen-decomposed pooled within-class covariance of z.
-
-    means (C, d) float64; evals (r,) >= 0 and evecs (d, r): the covariance's eigenpairs
-    (r = d, or the rank of a bank smaller than d: the other eigenvalues are 0);
-    log_prior (C,); tau = tr(Sigma)/d (the shrinkage target's scale). Vectors are
-    handled in the coordinates (z V, z - z V V^T): the whitened cosine is exact and a
-    small bank never needs a (d, d) eigen-decomposition.
-    """
-
-    means: torch.Tensor
-    evals: torch.Tensor
-    evecs: torch.Tensor
-    log_prior: torch.Tensor
-    tau: float
-
-    @classmethod
-    def fit(cls, z: torch.Tensor, labels: torch.Tensor, num_classes: int) -> 'CovarianceFit':
-        """z: (N, d) float32; labels: (N,) int64 (classes without entries: prior ~0)."""
-        z64 = z.double()
-        counts = torch.bincount(labels, minlength=num_classes).double()
-        means = torch.zeros(num_classes, z.shape[1], dtype=torch.float64)
-        means.index_add_(0, labels, z64)
-        means /= counts.clamp_min(1)[:, None]
-        centred = z64 - means[labels]
-        dof = max(1, len(labels) - num_classes)      # pooled, unbiased
-        if len(labels) < z.shape[1]:                 # low rank: SVD of the N rows
-            _, sv, vh = torch.linalg.svd(centred, full_matrices=False)
-            keep = sv > 1e-10 * max(1.0, float(sv.max()) if len(sv) else 1.0)
-            evals, evecs = sv[keep] ** 2 / dof, vh[keep].T.contiguous()
-        else:
-            evals, evecs = torch.linalg.eigh(centred.T @ centred / dof)
-            evals = evals.clamp_min(0.0)
-        tau = float(evals.sum() / z.shape[1])
-        # A class without entries gets a finite, overwhelming penalty instead of log(0).
-        log_prior = (counts / counts.sum()).log().clamp_min(_ABSENT_LOG_PRIOR)
-        return cls(means, evals, evecs, log_prior, tau)
-
-    @property
-    def full_rank(self) -> bool:
-        return self.evecs.shape[1] == self.evecs.shape[0]
-
-    def shrunk(self, alpha: float) -> tuple[torch.Tensor, float]:
-        """Eigenvalues of Sigma_alpha: (r,) on the eigenvectors, one value on the rest.
-
-        Floored so a zero covariance stays invertible.
-        """
-        lam = (1.0 - alpha) * self.evals + alpha * self.tau
-        floor = max(1e-12, 1e-9 * max(float(lam.max()) if len(lam) else 0.0, self.tau))
-        return lam.clamp_min(floor), max(alpha * self.tau, floor)
-
-    def coords(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """z: (N, d) -> (z V (N, r), z - z V V^T (N, d) or None when r = d), float64."""
-        z64 = z.double()
-        p = z64 @ self.evecs
-        return p, None if self.full_rank else z64 - p @ self.evecs.T
-
-    def whitened(self, coords: tuple[torch.Tensor, torch.Tensor | None], alpha: float
-                 ) -> torch.Tensor:
-        """Whitened rows z Sigma_alpha^(-1/2) in an orthonormal basis: (N, r [+ d]) float32."""
-        lam, lam_perp = self.shrunk(alpha)
-        p, c = coords
-        u = p * lam.rsqrt()
-        return (u if c is None else torch.cat([u, c * lam_perp ** -0.5], dim=1)).float()
-
-    def lda_logits(self, coords: tuple[torch.Tensor, torch.Tensor | None], alpha: float
-                   ) -> torch.Tensor:
-        """LDA logits z Sigma_a^-1 mu_c - mu_c Sigma_a^-1 mu_c / 2 + log prior_c: (N, C)."""
-        lam, lam_perp = self.shrunk(alpha)
-        pm, cm = self.coords(self.means)
-        p, c = coords
-        logits = (p / lam) @ pm.T - 0.5 * (pm * pm / lam).sum(1) + self.log_prior
-        if c is not None:
-            logits = logits + (c @ cm.T - 0.5 * (cm * cm).sum(1)) / lam_perp
-        return logits
-
-    def _lda64(self, alpha: float) -> tuple[torch.Tensor, torch.Tensor]:
-        lam, lam_perp = self.shrunk(alpha)
-        pm, cm = self.coords(self.means)
-        coef = (pm / lam) @ self.evecs.T
-        quad = (pm * pm / lam).sum(1)
-        if cm is not None:
-            coef = coef + cm / lam_perp
-            quad = quad + (cm * cm).sum(1) / lam_perp
-        return coef, -0.5 * quad + self.log_prior
-
-    def whitening(self, alpha: float) -> torch.Tensor:
-        """Sigma_alpha^(-1/2): (d, d) float32, symmetric."""
-        lam, lam_perp = self.shrunk(alpha)
-        v = self.evecs
-        w = (v * (lam.rsqrt() - lam_perp ** -0.5)) @ v.T
-        return (w + torch.eye(v.shape[0], dtype=w.dtype) * lam_perp ** -0.5).float()
-
-    def lda(self, alpha: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """LDA under Sigma_alpha: coef (C, d) float32, bias (C,) float32 (see module doc)."""
-        coef, bias = self._lda64(alpha)
-        return coef.float(), bias.float()
-
-
 def fit_head(z: torch.Tensor, labels: torch.Tensor, num_classes: int, gamma: float,
              alpha: float | None = None, lda_alpha: float | None = None,
-             fusion_weight: float = 0.0, temperature: float = 1.0) -> Head:
+             fusion_weight: float = 0.0, temperature: float = 1.0,
+             x: torch.Tensor | None = None) -> Head:
     """Fit the head on transformed bank rows z (N, d) with knobs chosen by CV.
 
     alpha: shrinkage of the vote's whitening (None: vote on z); lda_alpha: shrinkage
-    of the LDA covariance (used when fusion_weight > 0).
+    of the LDA covariance (used when fusion_weight > 0); x: (N, D) standardised rows: the
+    LDA is fitted on them instead (a wide LDA, module docstring).
     """
     use_lda = lda_alpha is not None and fusion_weight > 0
     if alpha is None and not use_lda:
         return Head(gamma, temperature=float(temperature))
-    fit = CovarianceFit.fit(z, labels, num_classes)
-    whiten = fit.whitening(alpha) if alpha is not None else None
-    coef, bias = fit.lda(lda_alpha) if use_lda else (None, None)
-    return Head(gamma, whiten, coef, bias, float(fusion_weight) if use_lda else 0.0,
+    fit = CovarianceFit.fit(z, labels, num_classes) if alpha is not None or x is None else None
+    whiten = fit.whitening(alpha) if fit is not None and alpha is not None else None
+    head = Head(gamma, whiten, None, None, float(fusion_weight) if use_lda else 0.0,
                 float(temperature))
+    if not use_lda:
+        return head
+    if x is None:
+        coef, bias = fit.lda(lda_alpha)
+        return replace(head, lda_coef=coef, lda_bias=bias)
+    wide = CovarianceFit.fit(x, labels, num_classes)
+    coef, bias = wide.lda(lda_alpha)
+    lam, _ = wide.shrunk(lda_alpha)
+    return replace(head, lda_coef=coef, lda_bias=bias, lda_wide=True,
+                   lda_precision=wide.precision(lda_alpha).float(),
+                   lda_means=wide.means.float(), lda_trace=float((wide.evals / lam).sum()))
 
 
 def best_temperature(fused: np.ndarray | torch.Tensor, labels: np.ndarray) -> tuple[float, float]:

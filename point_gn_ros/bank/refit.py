@@ -17,7 +17,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from point_gn_ros.bank.head import CovarianceFit, Head, fit_head
+from point_gn_ros.bank.head import Head, fit_head
+from point_gn_ros.bank.lda import CovarianceFit, ScatterStats, lda_from_means  # noqa: F401
 from point_gn_ros.bank.selection import (DEFAULT_GAMMAS, calibrate_novelty, calibrate_unknown,
                                          select)
 from point_gn_ros.bank.store import FeatureBank
@@ -39,80 +40,6 @@ LdaPrior = Literal['entries', 'balanced']
 # category's queries: scripts/instance_cv.py).
 MAX_VOTE_PRIOR = 4.0
 CalibrationPolicy = Literal['keep', 'recalibrate', 'auto']
-
-
-@dataclass(frozen=True)
-class ScatterStats:
-    """Sufficient statistics of the bank's rows z for the LDA: updated per enrollment.
-
-    gram (d, d) float64 = sum_i z_i z_i^T over every row; sums (C, d) float64 per class;
-    counts (C,) float64. The pooled within-class scatter of the classes S is
-    gram - sum_c sums_c sums_c^T / counts_c, so adding examples costs (m, d) x (d, m) and
-    one (d, d) eigen-decomposition instead of a pass over the whole bank.
-    """
-
-    gram: torch.Tensor
-    sums: torch.Tensor
-    counts: torch.Tensor
-
-    @classmethod
-    def of(cls, z: torch.Tensor, labels: torch.Tensor, num_classes: int) -> 'ScatterStats':
-        z64 = z.double()
-        sums = torch.zeros(num_classes, z.shape[1], dtype=torch.float64)
-        sums.index_add_(0, labels, z64)
-        counts = torch.bincount(labels, minlength=num_classes).double()
-        return cls(z64.T @ z64, sums, counts)
-
-    def merge(self, other: 'ScatterStats') -> 'ScatterStats':
-        """The statistics of both sets of rows (same classes)."""
-        return ScatterStats(self.gram + other.gram, self.sums + other.sums,
-                            self.counts + other.counts)
-
-    def add(self, z: torch.Tensor, class_id: int) -> 'ScatterStats':
-        """Rows z (m, d) joining class `class_id` (== C: a new class) -> new stats."""
-        z64 = z.double()
-        sums, counts = self.sums, self.counts
-        if class_id == len(counts):
-            sums = torch.cat([sums, torch.zeros(1, sums.shape[1], dtype=torch.float64)])
-            counts = torch.cat([counts, torch.zeros(1, dtype=torch.float64)])
-        sums, counts = sums.clone(), counts.clone()
-        sums[class_id] += z64.sum(0)
-        counts[class_id] += len(z64)
-        return ScatterStats(self.gram + z64.T @ z64, sums, counts)
-
-    def remove(self, z: torch.Tensor, class_id: int) -> 'ScatterStats':
-        """Every row z (m, d) of class `class_id` leaves; later class ids shift down."""
-        z64 = z.double()
-        keep = torch.arange(len(self.counts)) != class_id
-        return ScatterStats(self.gram - z64.T @ z64, self.sums[keep], self.counts[keep])
-
-    def lda(self, present: np.ndarray, alpha: float
-            ) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """LDA of the classes `present` under Sigma_alpha (as CovarianceFit.lda), or None.
-
-        -> coef (P, d) float32, bias (P,) float32. Solved with one Cholesky factorisation
-        of Sigma_alpha = (1 - alpha) Sigma + alpha tr(Sigma)/d I (no eigen-decomposition).
-        None when the stats cannot give it exactly (rows of other classes in the gram, fewer
-        rows than dimensions: CovarianceFit.fit's low-rank path) or Sigma_alpha is singular.
-        """
-        idx = torch.from_numpy(present)
-        n = self.counts[idx]
-        others = torch.ones(len(self.counts), dtype=torch.bool)
-        others[idx] = False
-        total, d = float(n.sum()), self.gram.shape[0]
-        if bool((self.counts[others] > 0).any()) or total < d:
-            return None
-        means = self.sums[idx] / n[:, None]
-        scatter = self.gram - (self.sums[idx].T / n) @ self.sums[idx]
-        cov = (scatter + scatter.T) / (2 * max(1.0, total - len(present)))
-        tau = float(torch.diagonal(cov).sum()) / d
-        shrunk = (1.0 - alpha) * cov + alpha * tau * torch.eye(d, dtype=torch.float64)
-        chol, info = torch.linalg.cholesky_ex(shrunk)
-        if int(info) != 0:
-            return None
-        coef = torch.cholesky_solve(means.T, chol).T                     # Sigma_a^-1 mu_c
-        bias = -0.5 * (means * coef).sum(1) + (n / total).log()
-        return coef.float(), bias.float()
 
 
 class RefitError(PointGNError):
@@ -137,6 +64,9 @@ class RefitPolicy:
     vote_prior: exponent beta of the kernel vote's class-size prior for classes this policy
     creates by enrollment (bank/vote_prior.py; recorded in the bank): their vote is scaled
     by (mean built-class entries / their entries)^beta. 0 (default): the plain vote, as built.
+    lda_debias: share f of the mean-noise correction a wide LDA gives each enrolled class
+    (one not in the build's provenance): its LDA bias += f tr(Sigma_a^-1 Sigma) / (2 n), n
+    its entries (bank/head.py `lda_noise_trace`). 0 (default): none; built classes never.
     """
 
     gamma: GammaPolicy = 'auto'
@@ -147,11 +77,14 @@ class RefitPolicy:
     duplicate_cosine: float = DUPLICATE_COSINE
     lda_prior: LdaPrior = 'entries'
     vote_prior: float = 0.0
+    lda_debias: float = 0.0
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.vote_prior) and 0.0 <= self.vote_prior <= MAX_VOTE_PRIOR):
             raise ValueError(f'vote_prior must be in [0, {MAX_VOTE_PRIOR:g}], got '
                              f'{self.vote_prior!r}')
+        if not (np.isfinite(self.lda_debias) and 0.0 <= self.lda_debias <= 1.0):
+            raise ValueError(f'lda_debias must be in [0, 1], got {self.lda_debias!r}')
         if self.lda_prior not in ('entries', 'balanced'):
             raise ValueError(f'lda_prior must be entries or balanced, got {self.lda_prior!r}')
         if self.gamma not in ('keep', 'cv', 'auto'):
@@ -278,7 +211,16 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
         elif policy.gamma == 'auto':
             gamma_reason = 'kept (auto: bank too large or a class too small for CV)'
         new_head = head
-        if head is not None and head.lda_coef is not None:
+        if head is not None and head.lda_wide:
+            # Wide LDA: the class means (updated by the add) under the kept precision.
+            n = torch.from_numpy(np.bincount(labels_all, minlength=bank.num_classes)[present])
+            coef, bias = lda_from_means(head.lda_means[torch.from_numpy(present)],
+                                        head.lda_precision, n)
+            built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
+            taught = torch.tensor([bank.class_names[c] not in built for c in present])
+            shift = policy.lda_debias * head.lda_trace / (2 * n.double())
+            new_head = replace(head, lda_coef=coef, lda_bias=bias + (shift * taught).float())
+        elif head is not None and head.lda_coef is not None:
             # Closed-form LDA refit with the CV-chosen shrinkage kept.
             lda_alpha = float(meta.get('head', {}).get('lda_alpha') or 0.0)
             lda = stats.lda(present, lda_alpha) if stats is not None else None
@@ -312,6 +254,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                                                            ', knobs kept')),
                      'calibration_reason': cal_reason, 'min_examples': policy.min_examples,
                      'lda_prior': policy.lda_prior, 'vote_prior': policy.vote_prior,
+                     'lda_debias': policy.lda_debias,
                      'predicted_classes': int(len(present))}
     return replace(bank, features=features, gamma=gamma, meta=meta, head=new_head), rewhiten
 
@@ -369,6 +312,9 @@ def _recalibrate(meta: dict, bank: FeatureBank, view: FeatureBank, compact: torc
                                                     and sel is not None)
     if not recal or len(present) < 2:
         return 'kept' if calib else 'none'
+    if sel is None and head is not None and head.lda_wide:
+        # Held-out scores of a wide LDA need every entry's standardised row: not in the file.
+        return 'kept (a wide-LDA head cannot be re-scored from the stored rows)'
     if sel is None:      # held-out scores with every knob pinned at its kept value
         hm = meta.get('head', {})
         z_view = vote_to_z(view.features, bank.head) if z_view is None else z_view

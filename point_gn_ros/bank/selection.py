@@ -91,6 +91,7 @@ class Selection:
     alpha: float | None = None                  # shrinkage of the vote's whitening
     whiten_vote: bool = False
     lda_alpha: float | None = None              # shrinkage of the LDA covariance
+    lda_wide: bool = False                      # LDA on the standardised rows, not z
     fusion_weight: float = 0.0
     temperature: float = 1.0
     cv_log_loss: float | None = None
@@ -101,7 +102,8 @@ class Selection:
     def head_meta(self) -> dict:
         """JSON-ready head settings and CV figures (what `bank info` prints)."""
         return {'alpha': self.alpha, 'whiten_vote': self.whiten_vote,
-                'lda_alpha': self.lda_alpha, 'fusion_weight': self.fusion_weight,
+                'lda_alpha': self.lda_alpha, 'lda_wide': self.lda_wide,
+                'fusion_weight': self.fusion_weight,
                 'temperature': self.temperature, 'cv_log_loss': self.cv_log_loss,
                 'vote_cv_accuracy': self.vote_cv_accuracy, 'folds_used': self.folds_used,
                 'fallback': self.fallback}
@@ -124,21 +126,23 @@ class _FoldScores:
 
     votes: dict[float | None, torch.Tensor]     # vote space (None: plain) -> (G, N, C) log shares
     best_cos: dict[float | None, torch.Tensor]  # vote space -> (N,) best cosine to the fold bank
-    lda: dict[float, torch.Tensor]              # alpha -> (N, C) LDA log-probabilities
+    lda: dict[tuple[float, bool], torch.Tensor]  # (alpha, wide) -> (N, C) LDA log-probs
 
 
 def _fold_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
                  parts: list[np.ndarray], standardize: Standardize, dims: int | None,
                  gammas: tuple[float, ...], alphas: tuple[float, ...],
-                 lda_alphas: tuple[float, ...], whiten_options: tuple[bool, ...]
-                 ) -> _FoldScores:
+                 lda_alphas: tuple[float, ...], whiten_options: tuple[bool, ...],
+                 wide_lda: bool = False) -> _FoldScores:
     n, g = len(lab), len(gammas)
+    wide_lda = wide_lda and dims is not None and dims < feats.shape[1]   # else the same LDA
     spaces: list[float | None] = [None] if False in whiten_options else []
     if True in whiten_options:
         spaces += list(alphas)
     out = _FoldScores({a: torch.zeros(g, n, num_classes) for a in spaces},
                       {a: torch.zeros(n) for a in spaces},
-                      {a: torch.zeros(n, num_classes) for a in lda_alphas})
+                      {(a, w): torch.zeros(n, num_classes)
+                       for w in (False, True)[:1 + wide_lda] for a in lda_alphas})
     everything = np.arange(n)
 
     def vote(space: float | None, sims: torch.Tensor, val: np.ndarray, train: np.ndarray) -> None:
@@ -159,7 +163,13 @@ def _fold_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
         c_tr, c_val = fit.coords(z_tr), fit.coords(z_val)     # once per fold
         for a in lda_alphas:
             logits = fit.lda_logits(c_val, a)
-            out.lda[a][torch.from_numpy(val)] = torch.log_softmax(logits, dim=1).float()
+            out.lda[a, False][torch.from_numpy(val)] = torch.log_softmax(logits, dim=1).float()
+        if wide_lda and lda_alphas:      # the LDA on every standardised dim (bank/head.py)
+            wide = CovarianceFit.fit(tf.standardized(feats[train]), lab[train], num_classes)
+            cw = wide.coords(tf.standardized(feats[val]))
+            for a in lda_alphas:
+                out.lda[a, True][torch.from_numpy(val)] = torch.log_softmax(
+                    wide.lda_logits(cw, a), dim=1).float()
         for a in alphas:
             if a in spaces:
                 u_tr = torch.nn.functional.normalize(fit.whitened(c_tr, a), dim=1)
@@ -188,7 +198,8 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
            alphas: tuple[float, ...] = DEFAULT_ALPHAS,
            weights: tuple[float, ...] = DEFAULT_WEIGHTS,
            whiten_options: tuple[bool, ...] = (False, True),
-           lda_alphas: tuple[float, ...] = DEFAULT_LDA_ALPHAS) -> Selection:
+           lda_alphas: tuple[float, ...] = DEFAULT_LDA_ALPHAS,
+           wide_lda: bool = False) -> Selection:
     """Grid search by stratified k-fold CV on the bank.
 
     feats: (N, D) float32 raw encoder features; labels: (N,) int; groups: (N,) int or
@@ -200,17 +211,21 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
     weights=(0,) gives the plain kernel vote. With fewer than
     `folds` objects in some class the folds shrink to that count; with one, no CV is
     possible and the plain vote with FALLBACK_GAMMA is returned (`fallback` says why).
+    wide_lda: also try each LDA on the standardised rows before the PCA (bank/head.py);
+    ties keep the LDA on z.
     """
     with _threads_for(len(labels)):
         return _select(feats, labels, num_classes, gammas, standardize_options, dims_options,
-                       folds, seed, groups, alphas, weights, whiten_options, lda_alphas)
+                       folds, seed, groups, alphas, weights, whiten_options, lda_alphas,
+                       wide_lda)
 
 
 def _select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
             gammas: tuple[float, ...], standardize_options: tuple[Standardize, ...],
             dims_options: tuple[int | None, ...], folds: int, seed: int,
             groups: np.ndarray | None, alphas: tuple[float, ...], weights: tuple[float, ...],
-            whiten_options: tuple[bool, ...], lda_alphas: tuple[float, ...]) -> Selection:
+            whiten_options: tuple[bool, ...], lda_alphas: tuple[float, ...],
+            wide_lda: bool = False) -> Selection:
     labels = np.asarray(labels, dtype=np.int64)
     lab = torch.from_numpy(labels)
     m = _min_class_groups(labels, groups)
@@ -237,7 +252,7 @@ def _select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
         if dims is not None and dims >= min(len(p) for p in parts) * (k - 1):
             continue                     # PCA wider than a fold's bank: not fittable
         fs = _fold_scores(feats, lab, num_classes, parts, std, dims, gammas, alphas,
-                          lda_alphas, whiten_options)
+                          lda_alphas, whiten_options, wide_lda)
         for space, votes in fs.votes.items():
             for gi, gamma in enumerate(gammas):
                 v = votes[gi]
@@ -245,19 +260,20 @@ def _select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
                 if space is None:
                     vote_best = max(vote_best, acc0)
                 row = {'standardize': std, 'dims': dims, 'whiten_alpha': space, 'gamma': gamma,
-                       'vote_accuracy': acc0, 'lda_alpha': None, 'weight': 0.0,
-                       'cv_accuracy': acc0}
+                       'vote_accuracy': acc0, 'lda_alpha': None, 'lda_wide': False,
+                       'weight': 0.0, 'cv_accuracy': acc0}
                 cands = [(acc0, None, 0.0)]
-                for a, w in itertools.product(fs.lda, weights[1:]):
-                    acc = float(((v + w * fs.lda[a]).argmax(1) == lab).double().mean())
-                    cands.append((acc, a, w))
-                for acc, a, w in cands:
+                for key, w in itertools.product(fs.lda, weights[1:]):
+                    acc = float(((v + w * fs.lda[key]).argmax(1) == lab).double().mean())
+                    cands.append((acc, key, w))
+                for acc, key, w in cands:
                     if acc > row['cv_accuracy'] + 1e-12:
-                        row.update(cv_accuracy=acc, lda_alpha=a, weight=w)
+                        row.update(cv_accuracy=acc, lda_alpha=key[0], lda_wide=key[1],
+                                   weight=w)
                 table.append(row)
                 if best is None or row['cv_accuracy'] > best[0] + 1e-12:
-                    a, w = row['lda_alpha'], row['weight']
-                    fused = v + w * fs.lda[a] if w > 0 else v.clone()
+                    key, w = (row['lda_alpha'], row['lda_wide']), row['weight']
+                    fused = v + w * fs.lda[key] if w > 0 else v.clone()
                     best = (row['cv_accuracy'], fused, dict(row), fs.best_cos[space].clone())
     if best is None:
         raise ValueError('no (standardize, dims) option fits this bank')
@@ -270,7 +286,8 @@ def _select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
                      heldout_correct=(pred == lab).numpy(),
                      heldout_novelty=(1.0 - best_cos).clamp_min(0).numpy(),
                      alpha=row['whiten_alpha'], whiten_vote=row['whiten_alpha'] is not None,
-                     lda_alpha=row['lda_alpha'], fusion_weight=row['weight'], temperature=t,
+                     lda_alpha=row['lda_alpha'], lda_wide=row['lda_wide'],
+                     fusion_weight=row['weight'], temperature=t,
                      cv_log_loss=loss, vote_cv_accuracy=vote_best if vote_best >= 0 else None,
                      folds_used=k, fallback=fallback)
 

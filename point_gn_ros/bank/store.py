@@ -11,6 +11,9 @@ Format version 2 (one `.npz`, read with allow_pickle=False, never unpickled):
   head_whiten   (d, d) float32             optional: whitening of the vote (bank/head.py)
   head_lda_coef (C, d) float32             optional: LDA logits = z coef^T + bias
   head_lda_bias (C,) float32
+  head_lda_precision (D(D+1)/2,) float32   with meta head.lda_wide: the wide LDA (bank/head.py)
+  head_lda_means     (C, D) float32        reads the standardised D-dim rows; coef is (C, D);
+                                           precision Sigma_a^-1 as its upper triangle, row-major
   meta          (M,) uint8                 UTF-8 JSON: versions, encoder config, class
                                            names, gamma, head (fusion weight, temperature,
                                            shrinkage, CV figures), calibration, provenance
@@ -47,6 +50,9 @@ from point_gn_ros.core.config import ENCODER_VERSION, EncoderConfig
 from point_gn_ros.errors import BankError
 from point_gn_ros.bank.gate import GATE_ARRAYS, Gate
 from point_gn_ros.bank.head import Head
+# Stored row values (bank/quant.py); re-exported: the enrollment code reads them from here.
+from point_gn_ros.bank.quant import (_INTEGER_DTYPES, STORED_DTYPES, pack_int4,  # noqa: F401
+                                     quantized, to_stored, unpack_int4)
 from point_gn_ros.bank.transform import FeatureTransform
 from point_gn_ros.bank.validate import check_bank_arrays
 
@@ -54,8 +60,6 @@ FORMAT_VERSION = 3
 # Written as version 2 when a bank has no views section and no int8/int4 features (older
 # readers).
 PLAIN_VERSION = 2
-STORED_DTYPES = ('float16', 'float32', 'int8', 'int4')
-_INTEGER_DTYPES = {'int8': 127, 'int4': 7}    # stored dtype -> largest stored magnitude
 VIEWS_PREFIX = 'views_'
 # Older formats that still load (as the plain kernel vote).
 VOTE_ONLY_VERSIONS = (1,)
@@ -120,7 +124,8 @@ class FeatureBank:
         head = self.classifier_head
         kind = ('plain kernel vote' if head.is_plain_vote else
                 f'{"whitened " if head.whiten is not None else ""}vote'
-                f'{f" + {head.fusion_weight:g} x LDA" if head.lda_coef is not None else ""}')
+                f'{f" + {head.fusion_weight:g} x LDA" if head.lda_coef is not None else ""}'
+                f'{" (every dim)" if head.lda_wide else ""}')
         return (f'{len(self)} entries, {self.num_classes} classes, dim {self.features.shape[1]} '
                 f'({self.meta.get("stored_dtype", "float32")}), {kind}, gamma {self.gamma:g}, '
                 f'T {head.temperature:.3g}, '
@@ -178,11 +183,16 @@ class FeatureBank:
         }
         if self.transform.projection is not None:
             arrays['tf_projection'] = self.transform.projection.cpu().numpy().astype(np.float32)
-        arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
         for name, t in zip(_HEAD_ARRAYS, (head.whiten, head.lda_coef, head.lda_bias),
                            strict=True):
             if t is not None:
                 arrays[name] = t.cpu().numpy().astype(np.float32)
+        if head.lda_wide:
+            meta['head'].update(lda_wide=True, lda_trace=float(head.lda_trace))
+            prec = head.lda_precision.cpu().numpy().astype(np.float32)
+            arrays['head_lda_precision'] = prec[np.triu_indices(len(prec))]
+            arrays['head_lda_means'] = head.lda_means.cpu().numpy().astype(np.float32)
+        arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
         return arrays
 
     @classmethod
@@ -329,8 +339,14 @@ class FeatureBank:
             raise bad(f'incomplete head metadata ({exc})') from None
         if not (np.isfinite(weight) and weight >= 0 and np.isfinite(temp) and temp > 0):
             raise bad(f'head fusion weight {weight} / temperature {temp} out of range')
-        shapes = {'head_whiten': (dim, dim), 'head_lda_coef': (num_classes, dim),
+        wide = bool(hm.get('lda_wide', False))
+        in_dim = len(a['tf_mean'])
+        shapes = {'head_whiten': (dim, dim),
+                  'head_lda_coef': (num_classes, in_dim if wide else dim),
                   'head_lda_bias': (num_classes,)}
+        if wide:
+            shapes.update(head_lda_precision=(in_dim * (in_dim + 1) // 2,),
+                          head_lda_means=(num_classes, in_dim))
         got = {}
         for name, shape in shapes.items():
             arr = a.get(name)
@@ -344,46 +360,17 @@ class FeatureBank:
             raise bad('head_lda_coef and head_lda_bias come together')
         if weight > 0 and 'head_lda_coef' not in got:
             raise bad('head fusion weight > 0 but no LDA arrays')
+        precision = None
+        if wide:
+            if not {'head_lda_coef', 'head_lda_precision', 'head_lda_means'} <= set(got):
+                raise bad('a wide-LDA head needs head_lda_coef, _bias, _precision and _means')
+            precision = torch.zeros(in_dim, in_dim)
+            rows, cols = np.triu_indices(in_dim)
+            precision[rows, cols] = got['head_lda_precision']
+            precision[cols, rows] = got['head_lda_precision']
+        trace = float(hm.get('lda_trace') or 0.0)
+        if wide and not (np.isfinite(trace) and 0 <= trace <= 1e6):
+            raise bad(f'head lda_trace {trace} out of range')
         return Head(gamma, got.get('head_whiten'), got.get('head_lda_coef'),
-                    got.get('head_lda_bias'), weight, temp)
-
-
-def to_stored(features: torch.Tensor, dtype: str) -> np.ndarray:
-    """Unit rows (N, d) -> the values a file stores (N, d) in `dtype`.
-
-    float16/float32: cast. int8 / int4: every row scaled so its largest coordinate is +-127 /
-    +-7 (load re-normalises rows, so no scale is kept; int4 is packed, pack_int4); stored
-    values cast to float32 and stored again are unchanged.
-    """
-    q = quantized(features, dtype)
-    return pack_int4(q) if dtype == 'int4' else q
-
-
-def quantized(features: torch.Tensor, dtype: str) -> np.ndarray:
-    """to_stored's values before int4 packing: (N, d) in dtype (int8 values for int4)."""
-    if dtype not in STORED_DTYPES:
-        raise ValueError(f'dtype must be one of {", ".join(STORED_DTYPES)}, got {dtype}')
-    x = features.detach().cpu().float().numpy()
-    if dtype not in _INTEGER_DTYPES:
-        return x.astype(dtype)
-    top = _INTEGER_DTYPES[dtype]
-    peak = np.abs(x).max(axis=1, keepdims=True)
-    scale = np.divide(np.float32(top), peak, out=np.zeros_like(peak), where=peak > 0)
-    return np.clip(np.rint(x * scale), -top, top).astype(np.int8)
-
-
-def pack_int4(q: np.ndarray) -> np.ndarray:
-    """(N, d) int8 in [-7, 7] -> (N, ceil(d / 2)) uint8: q + 8 per 4 bits, first value high."""
-    u = (q.astype(np.int16) + 8).astype(np.uint8)
-    if u.shape[1] % 2:
-        u = np.concatenate([u, np.full((len(u), 1), 8, np.uint8)], axis=1)  # a zero
-    return (u[:, 0::2] << 4) | u[:, 1::2]
-
-
-def unpack_int4(packed: np.ndarray, dim: int) -> np.ndarray:
-    """pack_int4's inverse: (N, ceil(dim / 2)) uint8 -> (N, dim) int8 in [-8, 7]."""
-    out = np.empty((len(packed), 2 * packed.shape[1]), np.int8)
-    out[:, 0::2] = (packed >> 4).astype(np.int8) - 8
-    out[:, 1::2] = (packed & 15).astype(np.int8) - 8
-    return out[:, :dim]
-
+                    got.get('head_lda_bias'), weight, temp, wide, precision,
+                    got.get('head_lda_means'), trace)

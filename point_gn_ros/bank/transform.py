@@ -61,6 +61,14 @@ class FeatureTransform:
         proj = None if self.projection is None else self.projection.to(device)
         return FeatureTransform(self.mean.to(device), self.scale.to(device), proj)
 
+    def standardized(self, feats: torch.Tensor) -> torch.Tensor:
+        """feats: (B, D) float32 -> (B, D) float32 unit rows, standardised, not projected.
+
+        What a wide LDA reads (bank/head.py): every encoder dim, not only the PCA's.
+        """
+        z = (feats.float() - self.mean) / self.scale
+        return torch.nn.functional.normalize(z, dim=1, eps=1e-12)
+
     def __call__(self, feats: torch.Tensor) -> torch.Tensor:
         """feats: (B, D) float32 -> (B, out_dim) float32, unit L2 norm."""
         z = (feats.float() - self.mean) / self.scale

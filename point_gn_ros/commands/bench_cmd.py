@@ -15,7 +15,15 @@ import sys
 import time
 from typing import Any
 
+# The roofline family (--profile) and the synthetic inputs live beside this module.
+from point_gn_ros.commands.bench_inputs import synthetic_bank, synthetic_clouds
+from point_gn_ros.commands.bench_roofline import PROFILE_SLOTS, profile_rows
+
 Row = dict[str, Any]
+
+__all__ = ['PROFILE_SLOTS', 'Row', 'TABLE_HEADER', 'classifier_rows', 'encoder_rows',
+           'format_rows', 'node_rows', 'profile_rows', 'register', 'resample_rows',
+           'synthetic_bank', 'synthetic_clouds']
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,50 +49,6 @@ def _median_time(fn: Callable[[], object], repeats: int) -> float:
         fn()
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
-
-
-def synthetic_clouds(count: int, n: int, seed: int = 0):
-    """Prepared clouds sampled from surfaces (spheres, boxes, cylinders): (count, n, 3)."""
-    import numpy as np
-
-    from point_gn_ros.core.sampling import normalize
-
-    rng = np.random.default_rng(seed)
-    out = np.empty((count, n, 3), np.float32)
-    for i in range(count):
-        kind = i % 3
-        u = rng.uniform(-1, 1, (n, 3))
-        if kind == 0:  # ellipsoid surface
-            pts = u / np.linalg.norm(u, axis=1, keepdims=True) * rng.uniform(0.3, 1, 3)
-        elif kind == 1:  # box surface
-            axis = rng.integers(0, 3, n)
-            pts = u * rng.uniform(0.3, 1, 3)
-            pts[np.arange(n), axis] = np.sign(u[np.arange(n), axis]) * rng.uniform(0.3, 1)
-        else:  # cylinder side
-            a = rng.uniform(0, 2 * np.pi, n)
-            pts = np.stack([np.cos(a), np.sin(a), u[:, 2] * rng.uniform(0.5, 2)], axis=1)
-        pts = pts + rng.normal(0, 0.005, pts.shape)
-        out[i] = normalize(pts.astype(np.float32))
-    return out
-
-
-def synthetic_bank(n: int, dims: int, seed: int = 0, classes: int = 40):
-    """A clustered bank of unit rows: (n, dims) float32 features, (n,) int64 labels.
-
-    Each class has a few modes; entries scatter around them, so nearest entries are
-    structured like a real bank's rather than uniform on the sphere. Coordinate j has
-    scale (1 + j)^-0.6, a decaying spectrum like the shipped bank's PCA features (the
-    leading quarter of the coordinates holds ~90 % of the energy; 93 % in the bank).
-    """
-    import numpy as np
-
-    rng = np.random.default_rng(seed)
-    scale = (1.0 + np.arange(dims, dtype=np.float32)) ** -0.6
-    modes = rng.standard_normal((classes * 8, dims)).astype(np.float32)
-    which = rng.integers(0, len(modes), n)
-    feats = (modes[which] + rng.standard_normal((n, dims)).astype(np.float32) * 0.8) * scale
-    feats /= np.linalg.norm(feats, axis=1, keepdims=True)
-    return feats, which % classes
 
 
 def encoder_rows(quick: bool, repeats: int, device: str, threads: int | None) -> list[Row]:
@@ -236,121 +200,6 @@ def classifier_rows(quick: bool, repeats: int, device: str) -> list[Row]:
                                           + (f' ({search})' if search != 'exact' else ''),
                                      value=t / batch * 1e3, unit='ms/query', note=''))
             del bank, clf, feats
-    return rows
-
-
-# Instrumented kernel slots (pgn_prof in pgn_stage.c) -> phase names of the roofline table.
-PROFILE_SLOTS = {8: 'initial embedding', 0: 'FPS', 1: 'kNN', 7: 'feature std',
-                 3: 'aggregation stage 1', 4: 'aggregation stage 2', 5: 'aggregation stage 3',
-                 6: 'aggregation stage 4', 9: 'pooling', 10: 'offsets and their std',
-                 11: 'work space (allocate, zero)'}
-_PROF_LEN = 16  # length of pgn_prof
-
-
-def _roofline_row(what: str, seconds: float, floor: float | None, note: str = '') -> Row:
-    ratio = f'{seconds / floor:.1f}x its floor' if floor else 'no floor counted'
-    return dict(section='roofline', what=what, value=seconds * 1e3, unit='ms CPU',
-                floor_ms=None if floor is None else floor * 1e3,
-                note=(f'floor {floor * 1e3:.3f} ms, ' if floor else '') + ratio
-                + (f'; {note}' if note else ''))
-
-
-def profile_rows(quick: bool, repeats: int) -> list[Row]:
-    """Roofline table: each phase's CPU time per cloud against its floor on this core.
-
-    Time: one thread, instrumented build, min of repeats. Floor: work / peaks measured
-    in this run (core/kernels/roofline.py).
-    """
-    import ctypes
-
-    import numpy as np
-
-    from point_gn_ros.core import kernels
-    from point_gn_ros.core.encoder import PointGNEncoder
-    from point_gn_ros.core.kernels.roofline import measure_peaks, phase_work
-
-    lib = kernels.load()
-    try:
-        prof = (ctypes.c_double * _PROF_LEN).in_dll(lib, 'pgn_prof') if lib is not None else None
-    except ValueError:
-        prof = None
-    if prof is None:
-        return [dict(section='roofline', what='kernel phases', value=float('nan'), unit='ms',
-                     note='needs the instrumented kernel: run with --profile from a fresh '
-                          'process')]
-    peaks = measure_peaks(lib, tries=2 if quick else 5)
-    rows = [dict(section='peaks', what='fp32 lane ops (FMA + add chains)', value=peaks.ops / 1e9,
-                 unit='G/s', note='one core, thread CPU time, best of tries'),
-            dict(section='peaks', what='exp (encoder polynomial)', value=peaks.exps / 1e9,
-                 unit='G/s', note=''),
-            dict(section='peaks', what='read bandwidth, 256 KB (L2)', value=peaks.l2_bw / 1e9,
-                 unit='GB/s', note=''),
-            dict(section='peaks', what='read bandwidth, 256 MB (memory)',
-                 value=peaks.mem_bw / 1e9, unit='GB/s', note='')]
-    enc = PointGNEncoder(threads=1)
-    clouds = synthetic_clouds(8 if quick else 32, enc.cfg.num_points, seed=5)
-    enc.encode(clouds[:1])
-    best = None
-    for _ in range(max(2, repeats)):
-        for i in range(_PROF_LEN):
-            prof[i] = 0.0
-        t0 = time.thread_time()  # batch on the calling thread (threads=1)
-        enc.encode(clouds)
-        total = time.thread_time() - t0
-        got = np.array([total] + [prof[i] for i in range(_PROF_LEN)]) / len(clouds)
-        best = got if best is None else np.minimum(best, got)
-    work = phase_work(enc.cfg)
-    floors = {name: w.floor(peaks) for name, w in work.items()}
-    for slot, name in PROFILE_SLOTS.items():
-        rows.append(_roofline_row(name, float(best[slot + 1]), floors.get(name)))
-    named = sum(float(best[slot + 1]) for slot in PROFILE_SLOTS)
-    rows.append(_roofline_row('rest (copies, pe tables, calls)', float(best[0]) - named, None))
-    rows.append(_roofline_row('encoder, one cloud, all phases', float(best[0]),
-                              sum(floors.values()), '1 thread, min over repeats'))
-    rows += search_roofline_rows(peaks, quick, repeats)
-    return rows
-
-
-def search_roofline_rows(peaks, quick: bool, repeats: int) -> list[Row]:
-    """Lone-query classification against a 100k-entry bank (10k with --quick).
-
-    Exact float32 scan and the two-stage int8 search (bank/search.py), thread CPU time.
-    """
-    import numpy as np
-
-    from point_gn_ros.bank.search import BankIndex
-    from point_gn_ros.core.kernels.roofline import Work, bank_scan_work
-
-    n, dims = (10_000 if quick else 100_000), 512
-    feats, labels = synthetic_bank(n, dims, seed=3)
-    index = BankIndex(feats, labels, num_classes=40)
-    rng = np.random.default_rng(4)
-    queries = feats[rng.integers(0, n, 8)]
-    queries = queries + (rng.normal(0, 0.3, queries.shape)
-                         * (1.0 + np.arange(dims)) ** -0.6).astype(np.float32)
-    queries /= np.linalg.norm(queries, axis=1, keepdims=True)
-    rows = []
-    # floors: the float32 bank read once; the int8 codes read once plus the rescored rows
-    exact_work = bank_scan_work(n, dims, 4.0)
-    coarse_work = bank_scan_work(n, index.coarse_dims, 1.0)
-    rescore = bank_scan_work(index.candidates, dims, 4.0)
-    two_stage = Work(ops=coarse_work.ops + rescore.ops, bytes=coarse_work.bytes + rescore.bytes,
-                     memory=True)
-    for what, fn, work in (('classifier: exact float32 scan', index.exact_scores, exact_work),
-                           (f'classifier: int8 {index.coarse_dims}-d scan + '
-                            f'{index.candidates} rescored', index.scores, two_stage)):
-        fn(queries[:1], gamma=50.0)
-        best = float('inf')
-        for _ in range(max(2, repeats)):
-            t0 = time.thread_time()
-            for q in queries:
-                fn(q[None], gamma=50.0)
-            best = min(best, (time.thread_time() - t0) / len(queries))
-        floor = work.floor(peaks)
-        rows.append(_roofline_row(what, best, floor, f'lone query, {n:,} x {dims} bank'))
-    agree = (index.scores(queries, 50.0).argmax(1) == index.exact_scores(queries, 50.0).argmax(1))
-    rows[-1]['note'] += (f'; coarse energy {index.coarse_energy:.2f}, same label as exact '
-                         f'{int(agree.sum())}/{len(agree)}')
     return rows
 
 

@@ -42,6 +42,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'creates (bank/vote_prior.py): its vote is scaled by (mean built-class '
                         'entries / its entries)^BETA, so a few-example instance is not '
                         'outvoted by its category; 0 = plain vote (default), 0-4')
+    a.add_argument('--lda-debias', type=_share, default=0.0, metavar='F',
+                   help="share of a wide LDA's mean-noise correction for a class this add "
+                        'creates (bank/head.py lda_noise_trace): its LDA bias rises by F x '
+                        'tr(P Sigma) / (2 n) for its n examples; 0 = none (default), 0-1')
     _common(a)
     a.set_defaults(func=_add)
 
@@ -80,7 +84,18 @@ def _policy(args: argparse.Namespace):
     from point_gn_ros.bank.enroll import RefitPolicy
     return RefitPolicy(gamma=args.gamma, calibration=args.calibration,
                        min_examples=args.min_examples, folds=args.folds,
-                       lda_prior=args.lda_prior, vote_prior=getattr(args, 'vote_prior', 0.0))
+                       lda_prior=args.lda_prior, vote_prior=getattr(args, 'vote_prior', 0.0),
+                       lda_debias=getattr(args, 'lda_debias', 0.0))
+
+
+def _share(text: str) -> float:
+    try:
+        share = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not 0.0 <= share <= 1.0:
+        raise argparse.ArgumentTypeError(f'{share:g} must be in [0, 1]')
+    return share
 
 
 def _beta(text: str) -> float:

@@ -33,7 +33,6 @@ from __future__ import annotations
 import point_gn_ros.node._quiet_interrupt  # noqa: F401 - first: before the slow imports
 
 from collections.abc import Callable, Sequence
-import dataclasses
 import signal
 import sys
 import threading
@@ -45,20 +44,19 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, ManagedEntity, TransitionCallbackReturn
 import rclpy.logging
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
 from sensor_msgs.msg import PointCloud2
 
 from point_gn_ros.errors import BankError, PointGNError
 from point_gn_ros.node.diagnostics import DiagnosticsBuilder
+from point_gn_ros.node.diagnostics_mixin import DiagnosticsMixin
 from point_gn_ros.node.frames import UpConvention
 from point_gn_ros.node.outputs import Outputs, vision_msgs_available
-from point_gn_ros.node.params import (LIVE, PARAMETERS, NodeConfigError, Settings,
-                                      descriptors, resolve_unknown_threshold,
-                                      settings_from_values, unknown_override_warnings)
+from point_gn_ros.node.parameter_mixin import ParameterMixin
+from point_gn_ros.node.params import (PARAMETERS, NodeConfigError, Settings,
+                                      resolve_unknown_threshold, settings_from_values)
 from point_gn_ros.node.pipeline import Answer, Pipeline
 from point_gn_ros.node.rate_limited_log import RateLimitedLogger
 from point_gn_ros.node.stats import NodeStats
@@ -87,8 +85,11 @@ def stamp_latency_s(now_ns: int, stamp_ns: int) -> float | None:
     return (now_ns - stamp_ns) * 1e-9
 
 
-class ClassifierNode(LifecycleNode):
-    """Point-GN classifier node; see the module docstring for topics, lifecycle, threading."""
+class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
+    """Point-GN classifier node; see the module docstring for topics, lifecycle, threading.
+
+    Parameter and /diagnostics methods: node/parameter_mixin.py, node/diagnostics_mixin.py.
+    """
 
     def __init__(self, *, extensions: Sequence[Extension] = (), **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
@@ -112,50 +113,6 @@ class ClassifierNode(LifecycleNode):
         for make in extensions:
             self.add_managed_entity(make(self))
         self._warn_unknown_overrides()          # after the extensions declared theirs
-
-    @property
-    def autostart(self) -> bool:
-        return bool(self.get_parameter('autostart').value)
-
-    # ------------------------------------------------------------------ parameters
-
-    def _declare_parameters(self) -> None:
-        for name, (default, desc) in descriptors().items():
-            self.declare_parameter(name, default, desc)
-
-    def _warn_unknown_overrides(self) -> None:
-        """Misspelt overrides, warned once the extensions have declared their parameters."""
-        undeclared = [n for n in self._parameter_overrides if not self.has_parameter(n)]
-        for warning in unknown_override_warnings(undeclared):
-            self.get_logger().warning(warning)
-
-    def _values(self) -> dict[str, Any]:
-        return {name: self.get_parameter(name).value for name in PARAMETERS}
-
-    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        """Validate and apply live parameter changes; refuse what cannot change now."""
-        changes = {}
-        for p in params:
-            if p.name == 'class_names' and not self._setting_class_names:
-                return SetParametersResult(successful=False,
-                                           reason='class_names comes from the bank (read-only)')
-            if p.name in LIVE:
-                changes[p.name] = p.value
-        if not changes or self.settings is None:
-            return SetParametersResult(successful=True)   # read at configure
-        try:
-            settings = dataclasses.replace(self.settings, **changes)
-            resolve_unknown_threshold(self.recognizer.bank, settings.unknown_threshold)
-        except (NodeConfigError, TypeError) as exc:
-            return SetParametersResult(successful=False, reason=str(exc))
-        self.settings = settings
-        self._queue.resize(settings.queue_size)
-        self._pipeline.update(settings)
-        self.get_logger().info('parameters changed: ' + ', '.join(
-            f'{k}={v!r}' for k, v in changes.items()))
-        if 'unknown_threshold' in changes:
-            self._publish_labels()
-        return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -292,30 +249,6 @@ class ClassifierNode(LifecycleNode):
         except RuntimeError:
             pass                               # already fixed (torch allows one call)
 
-    def _set_recognizer(self, recognizer: Any) -> None:
-        """Adopt a recognizer: class names (parameter and latched topics) follow its bank."""
-        self.recognizer = recognizer
-        self.class_names = list(recognizer.class_names)
-        self._setting_class_names = True
-        try:
-            if self.has_parameter('class_names'):
-                self.set_parameters([Parameter('class_names', Parameter.Type.STRING_ARRAY,
-                                               self.class_names)])
-            else:
-                # Taken from the bank: an override on the command line is ignored.
-                self.declare_parameter(
-                    'class_names', self.class_names,
-                    ParameterDescriptor(type=ParameterType.PARAMETER_STRING_ARRAY,
-                                        description='Class names of the bank (index = '
-                                                    'class_id); set by the node.'),
-                    ignore_override=True)
-        finally:
-            self._setting_class_names = False
-
-    def add_diagnostic_source(self, source: Callable[[str], Any]) -> None:
-        """source(node_name) -> diagnostic_msgs/DiagnosticStatus, added to every report."""
-        self._diagnostic_sources.append(source)
-
     def replace_recognizer(self, recognizer: Any) -> None:
         """Swap in another recognizer (e.g. a re-built bank); takes effect between batches.
 
@@ -389,30 +322,6 @@ class ClassifierNode(LifecycleNode):
         stamp_lat = stamp_latency_s(self.get_clock().now().nanoseconds, stamp_ns)
         self._stats.on_published(job.item.topic_index, len(job.clouds),
                                  time.monotonic() - job.item.receipt_time, stamp_lat)
-
-    # ------------------------------------------------------------------ diagnostics
-
-    def _input_problems(self) -> list[str]:
-        """Per input topic: '' or why it is suspicious (no publisher / no message for N s)."""
-        if not self._active:
-            return []
-        return self._watchdog.problems([sub.topic_name for sub in self._subs],
-                                       [sub.get_publisher_count() for sub in self._subs],
-                                       self.settings.input_timeout_s)
-
-    def _publish_diagnostics(self) -> None:
-        if self._pipeline is None:
-            return
-        snap = self._stats.snapshot(self._queue.depths())
-        arr = self._diagnostics.build(
-            self.get_fully_qualified_name(), snap, self.settings, self._pipeline.topic_names,
-            self._worker is not None and self._worker.is_alive(), self.recognizer.bank,
-            self.recognizer.classifier.unknown_threshold, self._input_problems(),
-            'active' if self._active else 'inactive')
-        arr.status += [source(self.get_fully_qualified_name())
-                       for source in self._diagnostic_sources]
-        arr.header.stamp = self.get_clock().now().to_msg()
-        self._pub_diag.publish(arr)
 
     # ------------------------------------------------------------------ shutdown
 

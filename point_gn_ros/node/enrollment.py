@@ -22,17 +22,14 @@ up between two micro-batches (Pipeline.update): each answer is computed with one
 Classes with fewer than ``min_examples_per_class`` examples are kept but not predicted;
 ``enroll_augment`` stores each example in several frames (core/augment.py).
 Examples are turned z-up like the objects the node classifies (frames.py) and encoded on the
-worker between micro-batches (node/enroll_engine.py).
+worker between micro-batches (node/enroll_engine.py); ~/enroll's stamp pairing and box crop
+are in node/enroll_detections.py.
 """
 
 from __future__ import annotations
 
 from concurrent.futures import Future
-import threading
-import time
 from typing import Any
-
-import numpy as np
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -48,6 +45,7 @@ from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.bank.refit import MAX_VOTE_PRIOR
 from point_gn_ros.core.augment import AUGMENTS
 from point_gn_ros.errors import DecodeError, PointGNError
+from point_gn_ros.node.enroll_detections import StampPairing, crop_box
 from point_gn_ros.node.enroll_engine import EnrollEngine
 from point_gn_ros.node.frames import to_z_up
 
@@ -85,6 +83,12 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                                'issue 12).',
                           {'floating_point_range': [FloatingPointRange(
                               from_value=0.0, to_value=MAX_VOTE_PRIOR, step=0.0)]}),
+    'enroll_lda_debias': (0.0, 'Share f of the mean-noise correction of a wide LDA (bank/head.py '
+                               'lda_noise_trace) for classes created by enrollment: LDA bias += '
+                               'f tr(P Sigma) / (2 n); 0 = none (default). Train CV for the '
+                               'shipped default: README, issue 12.',
+                          {'floating_point_range': [FloatingPointRange(
+                              from_value=0.0, to_value=1.0, step=0.0)]}),
     'enroll_augment': ('none', "Frames each example is stored in (core/augment.py): 'none', "
                                "'mirror', 'rot4' or 'd4' (8 entries per example: the frames "
                                'the yaw alignment confuses on partial scans).',
@@ -139,7 +143,8 @@ class Enrollment(ManagedEntity):
             log.error(f'parameter enroll_lda_prior={prior!r} must be entries or balanced')
             return TransitionCallbackReturn.FAILURE
         policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'],
-                             lda_prior=prior, vote_prior=float(self.values['enroll_vote_prior']))
+                             lda_prior=prior, vote_prior=float(self.values['enroll_vote_prior']),
+                             lda_debias=float(self.values['enroll_lda_debias']))
         try:
             # The first version's model derives from the node's recognizer (same rows): its
             # search index's basis is reused, not fitted again (~0.4 s of start-up CPU).
@@ -379,67 +384,6 @@ class Enrollment(ManagedEntity):
                                   else 'none')}
         out |= {f'count.{name}': n for name, n in counts.items()}
         return out
-
-
-
-class StampPairing:
-    """Matches detection arrays with scene clouds of the identical header stamp.
-
-    Either may arrive first; one left alone longer than `timeout_s` is discarded and counted
-    in `expired`. Thread-safe.
-    """
-
-    def __init__(self, timeout_s: float) -> None:
-        self.timeout_s = timeout_s
-        self.expired = 0
-        self._waiting: tuple[dict, dict] = ({}, {})      # detections, scenes: key -> (t, msg)
-        self._lock = threading.Lock()
-
-    def add(self, dets: Any, scene: Any) -> list[tuple[Any, Any]]:
-        """Give one message (the other None); -> [(detections, scene)] pairs now complete."""
-        msg = dets if dets is not None else scene
-        side = 0 if dets is not None else 1
-        key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
-        now = time.monotonic()
-        with self._lock:
-            for waiting in self._waiting:
-                for k in [k for k, (t, _) in waiting.items() if now - t > self.timeout_s]:
-                    del waiting[k]
-                    self.expired += 1
-            other = self._waiting[1 - side].pop(key, None)
-            if other is None:
-                self._waiting[side][key] = (now, msg)
-                return []
-        return [(msg, other[1]) if side == 0 else (other[1], msg)]
-
-
-def crop_box(xyz: np.ndarray, bbox: Any) -> np.ndarray:
-    """Points of xyz (N, 3) inside a vision_msgs/BoundingBox3D -> (M, 3) float32.
-
-    The box is in the cloud's frame (centre pose + size); a box of size 0 keeps every point
-    (the whole scene is the example).
-    """
-    size = np.array([bbox.size.x, bbox.size.y, bbox.size.z], dtype=np.float64)
-    if not (size > 0).any():
-        return xyz
-    c = bbox.center.position
-    q = bbox.center.orientation
-    rot = _quat_matrix(q.x, q.y, q.z, q.w)                # box axes in the cloud frame
-    local = (xyz.astype(np.float64) - np.array([c.x, c.y, c.z])) @ rot
-    inside = (np.abs(local) <= size / 2 + 1e-6).all(axis=1)
-    return xyz[inside]
-
-
-def _quat_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    """(3, 3) rotation of a quaternion (identity for the all-zero default)."""
-    n = x * x + y * y + z * z + w * w
-    if n < 1e-12:
-        return np.eye(3)
-    s = 2.0 / n
-    return np.array([
-        [1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)],
-        [s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w)],
-        [s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y)]])
 
 
 def _answer(response: Any, ok: bool, message: str) -> Any:
