@@ -87,6 +87,13 @@ def test_add_with_vote_prior_records_it(small_bank_path: Path, tmp_path: Path,
         main(['bank', 'add', str(out), str(tmp_path / 'scan.npy'), '--class', 'x',
               '--vote-prior', '-1'])
     assert 'must be in [0, 4]' in capsys.readouterr().err
+    assert main(['bank', 'add', str(small_bank_path), str(tmp_path / 'scan.npy'), '--class',
+                 'toolbox', '--lda-debias', '0.5', '-o', str(out)]) == 0
+    assert BankFile.load(out).bank.meta['refit']['lda_debias'] == 0.5
+    with pytest.raises(SystemExit):       # out of [0, 1]
+        main(['bank', 'add', str(out), str(tmp_path / 'scan.npy'), '--class', 'x',
+              '--lda-debias', '2'])
+    assert 'must be in [0, 1]' in capsys.readouterr().err
 
 
 def test_errors_are_one_line(small_bank_path: Path, tmp_path: Path,
