@@ -37,7 +37,6 @@ import torch
 from point_gn_ros.bank.builder import feature_cache_path
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, refit
-from point_gn_ros.bank.head import lda_noise_trace
 from point_gn_ros.bank.vote_prior import META_KEY
 from point_gn_ros.core.config import ENCODER_VERSION
 from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
@@ -110,14 +109,13 @@ def with_beta(bf: BankFile, beta: float, names: list[str], scope: str) -> BankFi
 def with_debias(bf: BankFile, f: float, names: list[str]) -> BankFile:
     """Both sections with f x the mean-noise correction on the LDA bias of `names`.
 
-    (wide-LDA sections only; bank/head.py `lda_noise_trace`): bias_c += f t / (2 n_c).
+    (wide-LDA sections only; t = the head's lda_trace, bank/lda.py): bias_c += f t / (2 n_c).
     """
     def put(bank):  # noqa: ANN001, ANN202
         head = bank.head
         if f == 0 or head is None or not head.lda_wide:
             return bank
-        t = TRACES.setdefault(id(head.lda_precision), lda_noise_trace(
-            head.lda_precision, float(bank.meta['head']['lda_alpha'])))
+        t = head.lda_trace
         n = torch.bincount(bank.labels, minlength=bank.num_classes).double()
         bias = head.lda_bias.clone()
         for name in names:
@@ -127,9 +125,6 @@ def with_debias(bf: BankFile, f: float, names: list[str]) -> BankFile:
     views = put(bf.bank.views)
     return BankFile(replace(put(bf.bank), views=views), bf.stored,
                     views=BankFile(views, bf.views.stored))
-
-
-TRACES: dict[int, float] = {}
 
 
 def key(g: tuple[float, float]) -> str:
@@ -192,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--betas', type=float, nargs='+', default=list(BETAS))
     p.add_argument('--debias', type=float, nargs='+', default=[0.0],
                    help='fractions f of the wide LDA mean-noise correction of enrolled classes '
-                        '(bank/head.py lda_noise_trace), each crossed with every beta')
+                        '(bank/lda.py lda_noise_trace), each crossed with every beta')
     p.add_argument('--other-scans', choices=('bank', 'random'), default='bank',
                    help="existing-class scans: the bank's own scans of each held-out object, "
                         "or one scan from a random viewpoint (enroll_study's existing-class "

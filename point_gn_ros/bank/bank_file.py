@@ -86,10 +86,13 @@ class BankFile:
         return cls(out, stored, views=views)
 
     def with_stats(self) -> 'BankFile':
-        """The same, with ScatterStats when the bank's head has an LDA part (one pass)."""
+        """The same, with ScatterStats when the bank's head has an LDA part (one pass).
+
+        A wide LDA refits from its stored means and precision instead: no statistics.
+        """
         head = self.bank.head
         views = None if self.views is None else self.views.with_stats()
-        if self.stats is not None or head is None or head.lda_coef is None:
+        if self.stats is not None or head is None or head.lda_coef is None or head.lda_wide:
             return self if views is self.views else replace(self, views=views)
         # In blocks of rows: a 79k-row scan section in float64 would need ~0.5 GB at once.
         u, labels, stats = self.bank.features, self.bank.labels, None

@@ -217,8 +217,10 @@ class Classifier:
 
     def _section(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The section's own head: (B, D) raw features -> probability (B, C), novelty (B,)."""
-        x = self.transform.standardized(features) if self.head.lda_wide else None
-        return self.head.evaluate_with(self.transform(features), self.search, self.vote_bias, x)
+        if not self.head.lda_wide:
+            return self.head.evaluate_with(self.transform(features), self.search, self.vote_bias)
+        z, x = self.transform.both(features)         # one standardisation for vote and LDA
+        return self.head.evaluate_with(z, self.search, self.vote_bias, x)
 
     @torch.no_grad()
     def scores(self, features: torch.Tensor) -> torch.Tensor:

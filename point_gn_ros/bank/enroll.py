@@ -33,7 +33,7 @@ import torch
 
 from point_gn_ros.bank.bank_file import (BankFile, from_stored, refitted_file, save_atomic,
                                          stored_dtype)
-from point_gn_ros.bank.head import wide_means_add, wide_means_remove
+from point_gn_ros.bank.lda import wide_means_add, wide_means_remove
 from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, active_view,
                                      example_counts, refit, vote_to_z)
 from point_gn_ros.bank.rows import append_rows
@@ -180,8 +180,10 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
         meta['augmented_entries'] = aug
     # z of the new rows as a full refit would recover them from the stored values.
     stats = None if bf.stats is None else bf.stats.add(vote_to_z(new, bank.head), cid)
-    head = wide_means_add(bank.head, bank.transform.standardized(features.float().cpu()), cid,
-                          int((bank.labels == cid).sum()))
+    head = bank.head
+    if head is not None and head.lda_wide:     # its class means take in the new rows
+        head = wide_means_add(head, bank.transform.standardized(features.float().cpu()), cid,
+                              int((bank.labels == cid).sum()))
     out, moved = refit(replace(bank, features=feats, labels=labels, class_names=names,
                                meta=meta, path=None, head=head), policy, stats)
     stored = np.concatenate([bf.stored, stored_new])

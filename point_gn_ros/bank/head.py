@@ -32,9 +32,8 @@ from typing import Protocol
 import numpy as np
 import torch
 
-# The LDA's algebra lives in bank/lda.py; re-exported here for the head's users.
-from point_gn_ros.bank.lda import (CovarianceFit, lda_from_means, lda_noise_trace,  # noqa: F401
-                                   wide_means_add, wide_means_remove)
+# The LDA's algebra lives in bank/lda.py (CovarianceFit re-exported for the head's users).
+from point_gn_ros.bank.lda import CovarianceFit
 
 # Upper bound on queries x bank entries held at once (float32 similarity block).
 _MAX_BLOCK = 1 << 24
@@ -65,7 +64,7 @@ class Head:
     lda_wide: bool = False
     lda_precision: torch.Tensor | None = None
     lda_means: torch.Tensor | None = None
-    lda_trace: float = 0.0       # wide LDA: tr(Sigma_a^-1 Sigma), see lda_noise_trace
+    lda_trace: float = 0.0       # wide LDA: tr(Sigma_a^-1 Sigma), see bank/lda.py lda_noise_trace
 
     @property
     def is_plain_vote(self) -> bool:

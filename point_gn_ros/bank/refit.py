@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.head import Head, fit_head
+# ScatterStats re-exported: bank_file.py and the scripts import it from here.
 from point_gn_ros.bank.lda import CovarianceFit, ScatterStats, lda_from_means  # noqa: F401
 from point_gn_ros.bank.selection import (DEFAULT_GAMMAS, calibrate_novelty, calibrate_unknown,
                                          select)
@@ -66,7 +67,7 @@ class RefitPolicy:
     by (mean built-class entries / their entries)^beta. 0 (default): the plain vote, as built.
     lda_debias: share f of the mean-noise correction a wide LDA gives each enrolled class
     (one not in the build's provenance): its LDA bias += f tr(Sigma_a^-1 Sigma) / (2 n), n
-    its entries (bank/head.py `lda_noise_trace`). 0 (default): none; built classes never.
+    its entries (bank/lda.py `lda_noise_trace`). 0 (default): none; built classes never.
     """
 
     gamma: GammaPolicy = 'auto'
@@ -216,10 +217,12 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
             n = torch.from_numpy(np.bincount(labels_all, minlength=bank.num_classes)[present])
             coef, bias = lda_from_means(head.lda_means[torch.from_numpy(present)],
                                         head.lda_precision, n)
-            built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
-            taught = torch.tensor([bank.class_names[c] not in built for c in present])
-            shift = policy.lda_debias * head.lda_trace / (2 * n.double())
-            new_head = replace(head, lda_coef=coef, lda_bias=bias + (shift * taught).float())
+            if policy.lda_debias > 0:      # classes an enrollment created, not built ones
+                built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
+                taught = torch.tensor([bank.class_names[c] not in built for c in present])
+                shift = policy.lda_debias * head.lda_trace / (2 * n.double())
+                bias = bias + (shift * taught).float()
+            new_head = replace(head, lda_coef=coef, lda_bias=bias)
         elif head is not None and head.lda_coef is not None:
             # Closed-form LDA refit with the CV-chosen shrinkage kept.
             lda_alpha = float(meta.get('head', {}).get('lda_alpha') or 0.0)

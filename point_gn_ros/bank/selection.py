@@ -133,16 +133,17 @@ def _fold_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
                  parts: list[np.ndarray], standardize: Standardize, dims: int | None,
                  gammas: tuple[float, ...], alphas: tuple[float, ...],
                  lda_alphas: tuple[float, ...], whiten_options: tuple[bool, ...],
-                 wide_lda: bool = False) -> _FoldScores:
+                 wide: dict[float, torch.Tensor] | None = None) -> _FoldScores:
+    """wide: `_wide_lda_scores` of the same folds and standardisation, or None."""
     n, g = len(lab), len(gammas)
-    wide_lda = wide_lda and dims is not None and dims < feats.shape[1]   # else the same LDA
     spaces: list[float | None] = [None] if False in whiten_options else []
     if True in whiten_options:
         spaces += list(alphas)
     out = _FoldScores({a: torch.zeros(g, n, num_classes) for a in spaces},
                       {a: torch.zeros(n) for a in spaces},
-                      {(a, w): torch.zeros(n, num_classes)
-                       for w in (False, True)[:1 + wide_lda] for a in lda_alphas})
+                      {(a, False): torch.zeros(n, num_classes) for a in lda_alphas})
+    if wide is not None:
+        out.lda.update({(a, True): scores for a, scores in wide.items()})
     everything = np.arange(n)
 
     def vote(space: float | None, sims: torch.Tensor, val: np.ndarray, train: np.ndarray) -> None:
@@ -164,17 +165,30 @@ def _fold_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
         for a in lda_alphas:
             logits = fit.lda_logits(c_val, a)
             out.lda[a, False][torch.from_numpy(val)] = torch.log_softmax(logits, dim=1).float()
-        if wide_lda and lda_alphas:      # the LDA on every standardised dim (bank/head.py)
-            wide = CovarianceFit.fit(tf.standardized(feats[train]), lab[train], num_classes)
-            cw = wide.coords(tf.standardized(feats[val]))
-            for a in lda_alphas:
-                out.lda[a, True][torch.from_numpy(val)] = torch.log_softmax(
-                    wide.lda_logits(cw, a), dim=1).float()
         for a in alphas:
             if a in spaces:
                 u_tr = torch.nn.functional.normalize(fit.whitened(c_tr, a), dim=1)
                 u_val = torch.nn.functional.normalize(fit.whitened(c_val, a), dim=1)
                 vote(a, u_val @ u_tr.T, val, train)
+    return out
+
+
+def _wide_lda_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
+                     parts: list[np.ndarray], standardize: Standardize,
+                     lda_alphas: tuple[float, ...]) -> dict[float, torch.Tensor]:
+    """Out-of-fold log-probabilities (N, C) per shrinkage of the LDA on every standardised dim.
+
+    It does not depend on the PCA width, so CV computes it once per standardisation.
+    """
+    out = {a: torch.zeros(len(lab), num_classes) for a in lda_alphas}
+    for val in parts:
+        train = np.setdiff1d(np.arange(len(lab)), val)
+        tf = FeatureTransform.fit(feats[train], standardize, None)
+        fit = CovarianceFit.fit(tf.standardized(feats[train]), lab[train], num_classes)
+        coords = fit.coords(tf.standardized(feats[val]))
+        for a in lda_alphas:
+            out[a][torch.from_numpy(val)] = torch.log_softmax(fit.lda_logits(coords, a),
+                                                              dim=1).float()
     return out
 
 
@@ -248,11 +262,18 @@ def _select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
     table: list[dict] = []
     best: tuple | None = None            # (acc, fused, settings, best_cos)
     vote_best = -1.0
+    wide_by_std: dict[str, dict[float, torch.Tensor]] = {}
     for std, dims in itertools.product(standardize_options, dims_options):
         if dims is not None and dims >= min(len(p) for p in parts) * (k - 1):
             continue                     # PCA wider than a fold's bank: not fittable
+        wide = None
+        if wide_lda and lda_alphas and dims is not None and dims < feats.shape[1]:
+            if std not in wide_by_std:   # without a projection it would be the same LDA
+                wide_by_std[std] = _wide_lda_scores(feats, lab, num_classes, parts, std,
+                                                    lda_alphas)
+            wide = wide_by_std[std]
         fs = _fold_scores(feats, lab, num_classes, parts, std, dims, gammas, alphas,
-                          lda_alphas, whiten_options, wide_lda)
+                          lda_alphas, whiten_options, wide)
         for space, votes in fs.votes.items():
             for gi, gamma in enumerate(gammas):
                 v = votes[gi]

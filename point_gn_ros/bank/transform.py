@@ -61,17 +61,27 @@ class FeatureTransform:
         proj = None if self.projection is None else self.projection.to(device)
         return FeatureTransform(self.mean.to(device), self.scale.to(device), proj)
 
+    def _scaled(self, feats: torch.Tensor) -> torch.Tensor:
+        return (feats.float() - self.mean) / self.scale
+
     def standardized(self, feats: torch.Tensor) -> torch.Tensor:
         """feats: (B, D) float32 -> (B, D) float32 unit rows, standardised, not projected.
 
         What a wide LDA reads (bank/head.py): every encoder dim, not only the PCA's.
         """
-        z = (feats.float() - self.mean) / self.scale
-        return torch.nn.functional.normalize(z, dim=1, eps=1e-12)
+        return torch.nn.functional.normalize(self._scaled(feats), dim=1, eps=1e-12)
+
+    def both(self, feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """feats: (B, D) -> (self(feats), standardized(feats)) from one standardisation."""
+        s = self._scaled(feats)
+        x = torch.nn.functional.normalize(s, dim=1, eps=1e-12)
+        if self.projection is None:
+            return x, x
+        return torch.nn.functional.normalize(s @ self.projection, dim=1, eps=1e-12), x
 
     def __call__(self, feats: torch.Tensor) -> torch.Tensor:
         """feats: (B, D) float32 -> (B, out_dim) float32, unit L2 norm."""
-        z = (feats.float() - self.mean) / self.scale
+        z = self._scaled(feats)
         if self.projection is not None:
             z = z @ self.projection
         return torch.nn.functional.normalize(z, dim=1, eps=1e-12)

@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'outvoted by its category; 0 = plain vote (default), 0-4')
     a.add_argument('--lda-debias', type=_share, default=0.0, metavar='F',
                    help="share of a wide LDA's mean-noise correction for a class this add "
-                        'creates (bank/head.py lda_noise_trace): its LDA bias rises by F x '
+                        'creates (bank/lda.py lda_noise_trace): its LDA bias rises by F x '
                         'tr(P Sigma) / (2 n) for its n examples; 0 = none (default), 0-1')
     _common(a)
     a.set_defaults(func=_add)

@@ -83,7 +83,7 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                                'issue 12).',
                           {'floating_point_range': [FloatingPointRange(
                               from_value=0.0, to_value=MAX_VOTE_PRIOR, step=0.0)]}),
-    'enroll_lda_debias': (0.0, 'Share f of the mean-noise correction of a wide LDA (bank/head.py '
+    'enroll_lda_debias': (0.0, 'Share f of the mean-noise correction of a wide LDA (bank/lda.py '
                                'lda_noise_trace) for classes created by enrollment: LDA bias += '
                                'f tr(P Sigma) / (2 n); 0 = none (default). Train CV for the '
                                'shipped default: README, issue 12.',
