@@ -138,21 +138,75 @@ class VoteSearch(Protocol):
 class ExactSearch:
     """Every bank entry votes: one (B, N) similarity block per group of queries.
 
-    bank_u: (N, d) vote-space rows; bank_labels: (N,) int64.
+    bank_u: (N, d) vote-space rows; bank_labels: (N,) int64. On the CPU the cosines come
+    from the compiled scan (core/kernels/pgn_dots.c: the bank read once per batch, a query's
+    cosines the same bit for bit in any batch; a BLAS GEMM reads a lone query's bank at a
+    fraction of the bandwidth), from the int8 codes of a bank stored as int8 / int4 (rows =
+    codes / ||codes||: a quarter of the bytes); elsewhere, or without a C compiler, torch.
     """
 
     def __init__(self, bank_u: torch.Tensor, bank_labels: torch.Tensor, num_classes: int
                  ) -> None:
         self.bank_u, self.bank_labels, self.num_classes = bank_u, bank_labels, int(num_classes)
+        self._rows = _kernel_rows(bank_u)
+
+    @property
+    def scans_codes(self) -> bool:
+        """Whether the compiled scan reads int8 codes (else float32 rows or torch)."""
+        return self._rows is not None and self._rows[1] is not None
+
+    def similarities(self, q: torch.Tensor) -> torch.Tensor:
+        """q: (B, d) vote-space rows -> (B, N) cosines to every bank entry."""
+        if self._rows is None or q.device.type != 'cpu':
+            return q @ self.bank_u.T
+        from point_gn_ros.core import kernels
+        rows, norms = self._rows
+        return torch.from_numpy(kernels.bank_dots(rows, q.detach().float().numpy(), norms))
 
     def log_votes(self, u: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
         step = max(1, _MAX_BLOCK // max(1, self.bank_u.shape[0]))
         logv, best = [], []
         for q in u.split(step):
-            sims = q @ self.bank_u.T
+            sims = self.similarities(q)
             logv.append(log_vote_shares(sims, self.bank_labels, self.num_classes, gamma))
             best.append(sims.max(dim=1).values)
         return torch.cat(logv), torch.cat(best)
+
+
+def _kernel_rows(bank_u: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """What the compiled scan reads for bank_u: (int8 codes, norms) or (float32 rows, None).
+
+    Codes when every row is exactly normalize(codes) for int8 codes (a bank stored as int8
+    or int4, bank/quant.py); float32 rows otherwise (no copy when bank_u already is such
+    rows). None off the CPU, without kernels, or for an empty bank.
+    """
+    if bank_u.device.type != 'cpu' or bank_u.ndim != 2 or bank_u.shape[0] == 0:
+        return None
+    from point_gn_ros.core import kernels
+    if kernels.load() is None:
+        return None
+    rows = np.ascontiguousarray(bank_u.detach().numpy(), dtype=np.float32)
+    codes = _stored_codes(rows)
+    return (rows, None) if codes is None else codes
+
+
+def _stored_codes(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(N, d) int8 codes and (N,) float32 norms with rows == normalize(codes), else None.
+
+    An int4 / int8 row's largest coordinate is stored as +-7 / +-127 (bank/quant.py), so its
+    codes are rint(row x 7 / peak) or rint(row x 127 / peak); checked exactly, with the
+    normalisation a loaded bank's rows come from (bank_file.from_stored).
+    """
+    peak = np.abs(rows).max(axis=1)
+    if not (peak > 0).all():
+        return None
+    for top in (7.0, 127.0):
+        codes = np.rint(rows * (np.float32(top) / peak)[:, None])
+        c = torch.from_numpy(codes)
+        if torch.equal(torch.nn.functional.normalize(c, dim=1), torch.from_numpy(rows)):
+            norms = torch.linalg.vector_norm(c, dim=1).numpy()
+            return np.ascontiguousarray(codes.astype(np.int8)), np.ascontiguousarray(norms)
+    return None
 
 
 def log_vote_shares(sims: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,

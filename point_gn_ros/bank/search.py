@@ -261,29 +261,49 @@ class BankIndex:
 
     def candidates_for(self, q: np.ndarray) -> np.ndarray:
         """Coarse pass for one query q (d,) float32 -> (M,) int32 entry ids, unordered."""
+        return self.candidates_many(q[None])[0]
+
+    def _query_codes(self, q: np.ndarray) -> np.ndarray:
+        """Queries q (B, d) -> int8 codes (B, r), each from its own row alone."""
+        out = np.empty((q.shape[0], self.coarse_dims), np.int8)
+        for b in range(q.shape[0]):
+            qs = (q[b] @ self.rotation) * self.scale     # coarse score = codes @ qs
+            top = float(np.abs(qs).max())
+            out[b] = np.rint(qs * (127.0 / top) if top > 0 else qs).astype(np.int8)
+        return out
+
+    def candidates_many(self, q: np.ndarray) -> np.ndarray:
+        """Coarse pass for queries q (B, d) float32 -> (B, M) int32 entry ids, rows unordered.
+
+        One pass over the codes for the whole batch (pgn_scan_i8_multi: integer sums, so
+        each query's candidates are those of its own pass, in any batch).
+        """
         n, m = self.codes.shape[0], min(self.candidates, self.codes.shape[0])
-        qs = (q @ self.rotation) * self.scale            # coarse score = codes @ qs
-        top = float(np.abs(qs).max())
-        q8 = np.rint(qs * (127.0 / top) if top > 0 else qs).astype(np.int8)
+        q8 = self._query_codes(q)
         if self._lib is None:  # no C compiler: the same pass in numpy
-            coarse = self.codes.astype(np.int32) @ q8.astype(np.int32)
-            return np.sort(np.argsort(-coarse, kind='stable')[:m]).astype(np.int32)
-        coarse, keys = self._scratch()
-        self._lib.pgn_scan_i8(self.codes.ctypes.data, n, self.coarse_dims, q8.ctypes.data,
-                              coarse.ctypes.data)
-        idx = np.empty(m, np.int32)
-        got = self._lib.pgn_top_m(coarse.ctypes.data, n, m, idx.ctypes.data, keys.ctypes.data)
-        return idx[:got]
+            coarse = q8.astype(np.int32) @ self.codes.astype(np.int32).T
+            order = np.argsort(-coarse, axis=1, kind='stable')[:, :m]
+            return np.sort(order, axis=1).astype(np.int32)
+        coarse, keys = self._scratch(len(q))
+        self._lib.pgn_scan_i8_multi(self.codes.ctypes.data, n, self.coarse_dims,
+                                    q8.ctypes.data, len(q), coarse.ctypes.data)
+        idx = np.empty((len(q), m), np.int32)
+        for b in range(len(q)):
+            got = self._lib.pgn_top_m(coarse[b].ctypes.data, n, m, idx[b].ctypes.data,
+                                      keys.ctypes.data)
+            assert got == m, (got, m)   # m <= n: pgn_top_m returns exactly m
+        return idx
 
-    def _scratch(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per-thread (N,) int32 scores and (N,) int64 keys, reused across queries.
+    def _scratch(self, batch: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Per-thread (B, N) int32 scores and (N,) int64 keys, reused across queries.
 
-        Fresh arrays of a large bank's size cost page faults on every query.
+        Fresh arrays of a large bank's size cost page faults on every query; they grow to
+        the largest batch seen.
         """
         bufs = getattr(self._local, 'bufs', None)
-        if bufs is None:
+        if bufs is None or bufs[0].shape[0] < batch:
             n = self.codes.shape[0]
-            bufs = self._local.bufs = (np.empty(n, np.int32), np.empty(n, np.int64))
+            bufs = self._local.bufs = (np.empty((batch, n), np.int32), np.empty(n, np.int64))
         return bufs
 
     def _dots(self, q: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
@@ -310,8 +330,7 @@ class BankIndex:
         """
         q = self._check(query)
         out = np.empty((q.shape[0], self.num_classes), np.float32)
-        for b in range(q.shape[0]):
-            rows = self.candidates_for(q[b])
+        for b, rows in enumerate(self.candidates_many(q) if len(q) else ()):
             out[b] = vote_shares(self._dots(q[b], rows), self.labels[rows], self.num_classes,
                                  gamma)
         return out
@@ -371,18 +390,20 @@ class IndexedSearch:
     def log_votes(self, u: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
         """u: (B, d) vote-space unit rows -> log vote shares (B, C), best cosine (B,)."""
         q = self.index._check(u.detach().cpu().float().numpy())
-        c, floor = self.num_classes, float(np.exp(_LOGIT_FLOOR))
-        logv = np.empty((q.shape[0], c), np.float64)
-        best = np.empty(q.shape[0], np.float32)
-        for b in range(q.shape[0]):
-            rows = self.index.candidates_for(q[b])
-            sims = self.index._dots(q[b], rows)                          # (M,) float32
-            lab = self.index.labels[rows]
-            best[b] = sims.max()
-            w = np.exp(np.maximum((sims.astype(np.float64) - best[b]) * gamma, _LOGIT_FLOOR))
-            votes = np.bincount(lab, weights=w, minlength=c)
-            votes += (self.counts - np.bincount(lab, minlength=c)) * floor  # the others
-            logv[b] = np.log(np.maximum(votes, _TINY))
+        c, floor, nq = self.num_classes, float(np.exp(_LOGIT_FLOOR)), q.shape[0]
+        if nq == 0:
+            return torch.zeros(0, c).to(u.device), torch.zeros(0).to(u.device)
+        rows = self.index.candidates_many(q)                             # (B, M)
+        sims = np.stack([self.index._dots(q[b], rows[b]) for b in range(nq)])   # float32
+        lab = self.index.labels[rows]                                    # (B, M)
+        best = sims.max(axis=1)
+        w = np.exp(np.maximum((sims.astype(np.float64) - best[:, None]) * gamma, _LOGIT_FLOOR))
+        # one bincount over (query, class) bins: each query's sums in its own entries' order
+        flat = (lab + c * np.arange(nq)[:, None]).ravel()
+        votes = np.bincount(flat, weights=w.ravel(), minlength=nq * c).reshape(nq, c)
+        seen = np.bincount(flat, minlength=nq * c).reshape(nq, c)
+        votes += (self.counts - seen) * floor                            # the others
+        logv = np.log(np.maximum(votes, _TINY))
         logv[:, self.absent] = -np.inf
         logv -= np.logaddexp.reduce(logv, axis=1, keepdims=True) if c else 0.0
         return (torch.from_numpy(logv.astype(np.float32)).to(u.device),

@@ -200,6 +200,39 @@ def classifier_rows(quick: bool, repeats: int, device: str) -> list[Row]:
                                           + (f' ({search})' if search != 'exact' else ''),
                                      value=t / batch * 1e3, unit='ms/query', note=''))
             del bank, clf, feats
+    return rows + default_bank_rows(repeats, device)
+
+
+def default_bank_rows(repeats: int, device: str) -> list[Row]:
+    """The shipped default bank's classifier per query: demo objects whole and as scans.
+
+    Complete objects go to the exact complete section (int4 codes), scans to the indexed
+    scan section (the gate routes them); lone queries are what a node at low rates sees.
+    """
+    import numpy as np
+
+    from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
+    from point_gn_ros.recognizer import Recognizer
+
+    rec = Recognizer.from_bank(None, device=device)
+    objects = load_demo_objects()
+    rng = np.random.default_rng(3)
+    rows: list[Row] = []
+    for kind, single_view in (('complete objects', False), ('single-view scans', True)):
+        feats = rec.encode([place_in_sensor_frame(x, rng, single_view=single_view)
+                            for x in objects.xyz[:16]])
+        for batch in (1, 8):
+            def run(b: int = batch, feats: Any = feats) -> None:
+                for i in range(0, 16, b):
+                    rec.classifier.classify(feats[i:i + b])
+
+            run()
+            cpu0 = time.process_time()
+            t = _median_time(run, repeats) / 16
+            cpu = (time.process_time() - cpu0) / (16 * repeats)
+            rows.append(dict(section='classifier', what=f'default bank, {kind}, batch {batch}',
+                             value=t * 1e3, unit='ms/query',
+                             note=f'process CPU {cpu * 1e3:.2f} ms per query'))
     return rows
 
 

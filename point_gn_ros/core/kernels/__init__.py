@@ -14,8 +14,10 @@ pgn_geom.c and pgn_project.c are compiled without fast-math and with -ffp-contra
 (distances must round exactly like the oracle's; an index row's projection must not depend
 on the rows beside it); the stage files (pgn_stage.c, pgn_avx512.c, pgn_avx2.c,
 pgn_avx2_d18.c, pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's
-libmvec); pgn_peak.c (roofline micro-benchmarks) without. The link step omits -ffast-math so
-that gcc does not add crtfastmath.o, which would flush denormals to zero process-wide.
+libmvec); pgn_dots.c (the exact vote's cosines) without fast-math and with -ffp-contract=off,
+so that a dot's summation order is its source's in any batch; pgn_peak.c (roofline
+micro-benchmarks) without fast-math. The link step omits -ffast-math so that gcc does not
+add crtfastmath.o, which would flush denormals to zero process-wide.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_avx2_d18.c': ['-ffast-math'],  # AVX2 stage 1 with derived Gaussians
             'pgn_encode.c': ['-ffast-math'],
             'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
+            # the exact vote's dot products: one summation order in any batch
+            'pgn_dots.c': ['-fno-fast-math', '-ffp-contract=off'],
             # the index's projection: row results must not depend on the batch
             'pgn_project.c': ['-fno-fast-math', '-ffp-contract=off'],
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
@@ -217,6 +221,12 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_top_m.argtypes = [p, i64, i64, p, p]
     lib.pgn_scan_f32.restype = None
     lib.pgn_scan_f32.argtypes = [p, i64, p, i64, p, p]
+    lib.pgn_scan_i8_multi.restype = None
+    lib.pgn_scan_i8_multi.argtypes = [p, i64, i64, p, i64, p]
+    lib.pgn_dots_f32.restype = None
+    lib.pgn_dots_f32.argtypes = [p, i64, i64, p, i64, p]
+    lib.pgn_dots_i8.restype = None
+    lib.pgn_dots_i8.argtypes = [p, p, i64, i64, p, i64, p]
     lib.pgn_project_f32.restype = None
     lib.pgn_project_f32.argtypes = [p, i64, i64, p, i64, p]
 
@@ -275,6 +285,35 @@ def _require() -> ctypes.CDLL:
     if lib is None:
         raise RuntimeError(f'compiled kernels unavailable: {last_error()}')
     return lib
+
+
+def bank_dots(feats: np.ndarray, queries: np.ndarray, norms: np.ndarray | None = None
+              ) -> np.ndarray:
+    """Dot products of every query with every bank row: (N, d), (B, d) -> (B, N) float32.
+
+    feats: C-contiguous float32 rows, or int8 codes with norms (N,) float32 (the rows are
+    then codes / norms, a bank stored as int8 or int4; not copied). pgn_dots.c: the bank is
+    read once per call, and each query's row of the result is the same bit for bit whatever
+    the batch.
+    """
+    lib = _require()
+    codes = feats.dtype == np.int8
+    if not feats.flags.c_contiguous or feats.dtype != (np.int8 if codes else np.float32):
+        raise ValueError('bank rows must be C-contiguous float32 or int8')
+    if codes and (norms is None or norms.dtype != np.float32 or norms.shape != feats.shape[:1]
+                  or not norms.flags.c_contiguous):
+        raise ValueError('int8 bank codes need their (N,) float32 norms')
+    q = np.ascontiguousarray(queries, dtype=np.float32)
+    if q.ndim != 2 or q.shape[1] != feats.shape[1]:
+        raise ValueError(f'queries must be (B, {feats.shape[1]}), got {q.shape}')
+    out = np.empty((q.shape[0], feats.shape[0]), np.float32)
+    if codes:
+        lib.pgn_dots_i8(feats.ctypes.data, norms.ctypes.data, feats.shape[0], feats.shape[1],
+                        q.ctypes.data, q.shape[0], out.ctypes.data)
+    else:
+        lib.pgn_dots_f32(feats.ctypes.data, feats.shape[0], feats.shape[1], q.ctypes.data,
+                         q.shape[0], out.ctypes.data)
+    return out
 
 
 def fps_indices(xyz: np.ndarray, m: int) -> np.ndarray:

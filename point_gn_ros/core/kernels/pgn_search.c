@@ -5,6 +5,8 @@
  * pass is bound by memory bandwidth at 1/16 of a float32 scan's bytes).
  * pgn_top_m: the m largest scores (any order) by a threshold bracket on their values.
  * pgn_scan_f32: float32 dot products (the exact rescoring and the reference scan).
+ * pgn_scan_i8_multi: pgn_scan_i8 for a batch of queries, the rows read once per block of
+ * rows (integer sums: the same results as one query at a time, in any batch).
  */
 #include <stdint.h>
 #include <stdlib.h>
@@ -67,6 +69,59 @@ void pgn_scan_i8(const int8_t *codes, int64_t n, int64_t r, const int8_t *q, int
 #pragma omp simd reduction(+:acc)
         for (int64_t j = 0; j < r; ++j) acc += (int32_t)row[j] * (int32_t)q[j];
         out[i] = acc;
+    }
+}
+
+/* The coarse pass of a batch: out[b * n + i] = sum_j codes[i * r + j] * q[b * r + j] for
+ * b < nq. Rows are walked in blocks that stay in L1 while every query passes over them, so
+ * a batch reads the codes from memory once instead of once per query. */
+enum { SCAN_BLOCK = 64, SCAN_GROUP = 4 };
+
+void pgn_scan_i8_multi(const int8_t *codes, int64_t n, int64_t r, const int8_t *q,
+                       int64_t nq, int32_t *out) {
+    if (nq == 1) {      /* a lone query: the single-query loop (the same sums) */
+        pgn_scan_i8(codes, n, r, q, out);
+        return;
+    }
+#if defined(__AVX2__) && !defined(__AVX512BW__)
+    if (r % 32 == 0) {
+        const __m256i ones = _mm256_set1_epi16(1);
+        for (int64_t i0 = 0; i0 < n; i0 += SCAN_BLOCK) {
+            const int64_t i1 = i0 + SCAN_BLOCK < n ? i0 + SCAN_BLOCK : n;
+            for (int64_t b0 = 0; b0 < nq; b0 += SCAN_GROUP) {
+                const int64_t g = nq - b0 < SCAN_GROUP ? nq - b0 : SCAN_GROUP;
+                const int8_t *qb = q + b0 * r;
+                for (int64_t i = i0; i < i1; ++i) {
+                    const int8_t *row = codes + i * r;
+                    __m256i acc[SCAN_GROUP];
+                    for (int t = 0; t < SCAN_GROUP; ++t) acc[t] = _mm256_setzero_si256();
+                    for (int64_t j = 0; j < r; j += 32) {
+                        const __m256i c = _mm256_loadu_si256((const void *)(row + j));
+                        const __m256i a = _mm256_abs_epi8(c);
+                        for (int64_t t = 0; t < g; ++t) {
+                            const __m256i qq = _mm256_loadu_si256((const void *)(qb + t * r + j));
+                            const __m256i p = _mm256_maddubs_epi16(a, _mm256_sign_epi8(qq, c));
+                            acc[t] = _mm256_add_epi32(acc[t], _mm256_madd_epi16(p, ones));
+                        }
+                    }
+                    for (int64_t t = 0; t < g; ++t) {
+                        const __m128i s = _mm_add_epi32(_mm256_castsi256_si128(acc[t]),
+                                                        _mm256_extracti128_si256(acc[t], 1));
+                        const __m128i s2 = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4e));
+                        out[(b0 + t) * n + i] =
+                            _mm_cvtsi128_si32(_mm_add_epi32(s2, _mm_shuffle_epi32(s2, 0xb1)));
+                    }
+                }
+            }
+        }
+        return;
+    }
+#endif
+    /* elsewhere: pgn_scan_i8 per query over each block (AVX-512BW reads the block from L1) */
+    for (int64_t i0 = 0; i0 < n; i0 += SCAN_BLOCK) {
+        const int64_t m = n - i0 < SCAN_BLOCK ? n - i0 : SCAN_BLOCK;
+        for (int64_t b = 0; b < nq; ++b)
+            pgn_scan_i8(codes + i0 * r, m, r, q + b * r, out + b * n + i0);
     }
 }
 

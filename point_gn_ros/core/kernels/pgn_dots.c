@@ -1,0 +1,118 @@
+/* Exact dot products of a batch of queries with every bank row: the classifier's exact
+ * kernel vote (bank/head.py ExactSearch).
+ *
+ * pgn_dots_f32: out[b * n + i] = <feats[i], q[b]>, float32 rows.
+ * pgn_dots_i8:  out[b * n + i] = <codes[i], q[b]> / norms[i], the int8 codes of a bank
+ *               stored as int8 / int4 (its rows are codes / ||codes||): a quarter of the
+ *               bytes of its float32 rows, so a lone query's scan reads 5 MB, not 20.
+ *
+ * Every dot is summed in one order fixed by this source whatever the batch: one 8-lane
+ * partial sum over the row in steps of 8 (fused multiply-add where the CPU has it, by
+ * intrinsic), a fixed tree over the lanes, then the tail in index order. The file is
+ * compiled without fast-math and with -ffp-contract=off, so the compiler may not reorder or
+ * fuse anything else: a query's result never depends on the queries or rows computed beside
+ * it. Register tiles of 2 rows x 4 queries; the rows after the next pair are prefetched, and
+ * every query passes over a pair while it is in cache, so a batch reads the bank once (a
+ * BLAS GEMM at batch 1 is a matrix-vector product, and rounds by the batch's shape).
+ */
+#include <stdint.h>
+#include <string.h>
+#if defined(__AVX__)
+#include <immintrin.h>
+#endif
+
+typedef float dv8 __attribute__((vector_size(32)));
+typedef int8_t dc8 __attribute__((vector_size(8)));
+
+static inline dv8 dload(const float *p) { dv8 v; memcpy(&v, p, sizeof(v)); return v; }
+
+static inline dv8 dload_i8(const int8_t *p) {         /* exact: |code| <= 127 */
+#if defined(__AVX2__)
+    return (dv8)_mm256_cvtepi32_ps(_mm256_cvtepi8_epi32(_mm_loadl_epi64((const void *)p)));
+#else
+    dc8 v;
+    memcpy(&v, p, sizeof(v));
+    return __builtin_convertvector(v, dv8);
+#endif
+}
+
+static inline dv8 dfma(dv8 a, dv8 b, dv8 c) {
+#if defined(__FMA__)
+    return (dv8)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
+#else
+    return a * b + c;
+#endif
+}
+
+/* The lanes of s summed as ((t0 + t4) + (t1 + t5)) + ((t2 + t6) + (t3 + t7)). */
+static inline float dsum(dv8 s) {
+#if defined(__AVX__)
+    const __m128 w = _mm_add_ps(_mm256_castps256_ps128((__m256)s),
+                                _mm256_extractf128_ps((__m256)s, 1));
+    const __m128 h = _mm_hadd_ps(w, w);               /* (w0 + w1, w2 + w3, ...) */
+    return _mm_cvtss_f32(_mm_hadd_ps(h, h));
+#else
+    float t[8];
+    memcpy(t, &s, sizeof(t));
+    return ((t[0] + t[4]) + (t[1] + t[5])) + ((t[2] + t[6]) + (t[3] + t[7]));
+#endif
+}
+
+/* R rows (1 or 2) x G queries (1, 2 or 4) of float32 rows (I8 = 0) or int8 codes (I8 = 1);
+ * constant at each call, so each inlined copy keeps its R x G partial sums in registers. */
+static inline __attribute__((always_inline)) void tile(
+        const void *rows, const float *norms, int64_t i, int64_t n, int64_t d,
+        const float *q, int64_t b, int R, int G, int I8, float *out) {
+    const int64_t d8 = d / 8 * 8;
+    const float *rf = (const float *)rows;
+    const int8_t *rc = (const int8_t *)rows;
+    dv8 acc[2][4] = {{{0}}};
+    for (int64_t j = 0; j < d8; j += 8) {
+        dv8 rv[2];
+        for (int r = 0; r < R; ++r)
+            rv[r] = I8 ? dload_i8(rc + (i + r) * d + j) : dload(rf + (i + r) * d + j);
+        for (int g = 0; g < G; ++g) {
+            const dv8 qv = dload(q + (b + g) * d + j);
+            for (int r = 0; r < R; ++r) acc[r][g] = dfma(rv[r], qv, acc[r][g]);
+        }
+    }
+    for (int r = 0; r < R; ++r)
+        for (int g = 0; g < G; ++g) {
+            const float *qb = q + (b + g) * d;
+            float s = dsum(acc[r][g]);
+            for (int64_t j = d8; j < d; ++j)
+                s += (I8 ? (float)rc[(i + r) * d + j] : rf[(i + r) * d + j]) * qb[j];
+            out[(b + g) * n + i + r] = I8 ? s / norms[i + r] : s;
+        }
+}
+
+static inline __attribute__((always_inline)) void rows_tile(
+        const void *rows, const float *norms, int64_t i, int64_t n, int64_t d,
+        const float *q, int64_t nq, int R, int I8, float *out) {
+    /* the rows after the next pair, ahead of use: one prefetch per cache line */
+    const int64_t bytes = I8 ? 1 : 4;
+    const char *base = (const char *)rows, *end = base + n * d * bytes;
+    const char *ahead = base + (i + 4) * d * bytes;
+    for (int64_t o = 0; o < R * d * bytes && ahead + o < end; o += 64)
+        __builtin_prefetch(ahead + o);
+    int64_t b = 0;
+    for (; b + 4 <= nq; b += 4) tile(rows, norms, i, n, d, q, b, R, 4, I8, out);
+    if (b + 2 <= nq) { tile(rows, norms, i, n, d, q, b, R, 2, I8, out); b += 2; }
+    if (b < nq) tile(rows, norms, i, n, d, q, b, R, 1, I8, out);
+}
+
+/* feats (n, d) and q (nq, d) row-major float32 -> out (nq, n). */
+void pgn_dots_f32(const float *feats, int64_t n, int64_t d, const float *q, int64_t nq,
+                  float *out) {
+    int64_t i = 0;
+    for (; i + 2 <= n; i += 2) rows_tile(feats, NULL, i, n, d, q, nq, 2, 0, out);
+    if (i < n) rows_tile(feats, NULL, i, n, d, q, nq, 1, 0, out);
+}
+
+/* codes (n, d) int8, norms (n,) float32 > 0, q (nq, d) float32 -> out (nq, n). */
+void pgn_dots_i8(const int8_t *codes, const float *norms, int64_t n, int64_t d,
+                 const float *q, int64_t nq, float *out) {
+    int64_t i = 0;
+    for (; i + 2 <= n; i += 2) rows_tile(codes, norms, i, n, d, q, nq, 2, 1, out);
+    if (i < n) rows_tile(codes, norms, i, n, d, q, nq, 1, 1, out);
+}

@@ -1,0 +1,131 @@
+"""The classifier's compiled bank scans: batched, exact, the same result in any batch.
+
+pgn_dots.c (the exact vote's cosines) and pgn_search.c's pgn_scan_i8_multi (the indexed
+search's coarse pass over a batch of queries).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from point_gn_ros.bank.bank_file import from_stored
+from point_gn_ros.bank.head import ExactSearch, _stored_codes, log_vote_shares
+from point_gn_ros.bank.quant import quantized
+from point_gn_ros.bank.search import BankIndex, IndexedSearch
+from point_gn_ros.commands.bench_cmd import synthetic_bank
+from point_gn_ros.core import kernels
+
+
+@pytest.fixture(scope='module')
+def lib():
+    lib = kernels.load()
+    if lib is None:
+        pytest.skip(f'compiled kernels unavailable: {kernels.last_error()}')
+    return lib
+
+
+def _unit(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
+    x = rng.normal(size=(n, d)).astype(np.float32)
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize('d', [512, 320, 37, 8, 3])
+def test_bank_dots_exact_and_batch_invariant(lib, d: int) -> None:
+    # odd row counts, widths off the 8- and 16-lane steps, every query-group size
+    rng = np.random.default_rng(d)
+    feats, q = _unit(rng, 101, d), _unit(rng, 11, d)
+    got = kernels.bank_dots(feats, q)
+    ref = q.astype(np.float64) @ feats.T.astype(np.float64)
+    np.testing.assert_allclose(got, ref, atol=2e-6, rtol=0)
+    for b in range(len(q)):
+        assert np.array_equal(kernels.bank_dots(feats, q[b:b + 1])[0], got[b])
+    for lo, hi in ((0, 2), (3, 6), (2, 9), (5, 11)):
+        assert np.array_equal(kernels.bank_dots(feats, q[lo:hi]), got[lo:hi])
+    # a row's cosines do not depend on the rows beside it either
+    assert np.array_equal(kernels.bank_dots(feats[7:40], q), got[:, 7:40])
+
+
+def test_bank_dots_refuses_rows_it_would_copy(lib) -> None:
+    feats = _unit(np.random.default_rng(0), 10, 16)
+    with pytest.raises(ValueError, match='C-contiguous float32'):
+        kernels.bank_dots(feats.astype(np.float64), feats)
+    with pytest.raises(ValueError, match='C-contiguous float32'):
+        kernels.bank_dots(np.asfortranarray(feats), feats)
+    with pytest.raises(ValueError, match=r'\(B, 16\)'):
+        kernels.bank_dots(feats, feats[:, :8])
+
+
+@pytest.mark.parametrize('r', [32, 288, 40])
+def test_scan_i8_multi_equals_one_query_at_a_time(lib, r: int) -> None:
+    # integer sums: a batch's pass must give each query exactly its own pass
+    rng = np.random.default_rng(r)
+    codes = rng.integers(-127, 128, (1_000, r)).astype(np.int8)
+    q = rng.integers(-127, 128, (9, r)).astype(np.int8)
+    one = np.empty(len(codes), np.int32)
+    for nq in (1, 2, 3, 4, 5, 9):
+        out = np.empty((nq, len(codes)), np.int32)
+        lib.pgn_scan_i8_multi(codes.ctypes.data, len(codes), r, q.ctypes.data, nq,
+                              out.ctypes.data)
+        for b in range(nq):
+            lib.pgn_scan_i8(codes.ctypes.data, len(codes), r, q[b].ctypes.data, one.ctypes.data)
+            assert np.array_equal(out[b], one)
+            assert np.array_equal(one, codes.astype(np.int32) @ q[b].astype(np.int32))
+
+
+def test_candidates_of_a_batch_are_each_querys_own() -> None:
+    feats, labels = synthetic_bank(5_000, 128, seed=5, classes=12)
+    index = BankIndex(feats, labels, 12, candidates=300)
+    q = _unit(np.random.default_rng(6), 7, 128)
+    many = index.candidates_many(q)
+    assert many.shape == (7, 300)
+    for b in range(len(q)):
+        assert np.array_equal(np.sort(many[b]), np.sort(index.candidates_for(q[b])))
+    # without a C compiler: numpy's pass finds the same candidates
+    index._lib = None
+    assert np.array_equal(np.sort(index.candidates_many(q), axis=1), np.sort(many, axis=1))
+    index._lib = kernels.load()
+    # and the search's votes: a query's row is the same alone and in the batch
+    search = IndexedSearch(torch.from_numpy(feats), torch.from_numpy(labels), 12,
+                           candidates=300)
+    logv, best = search.log_votes(torch.from_numpy(q), 60.0)
+    for b in range(len(q)):
+        lv1, b1 = search.log_votes(torch.from_numpy(q[b:b + 1]), 60.0)
+        assert torch.equal(lv1[0], logv[b]) and torch.equal(b1[0], best[b])
+
+
+def test_exact_search_on_the_kernel_matches_torch_and_any_batch(lib) -> None:
+    rng = np.random.default_rng(7)
+    feats = _unit(rng, 3_001, 96)
+    labels = torch.from_numpy(rng.integers(0, 9, len(feats)))
+    search = ExactSearch(torch.from_numpy(feats), labels, 9)
+    q = torch.from_numpy(_unit(rng, 13, 96))
+    logv, best = search.log_votes(q, 80.0)
+    sims = q @ torch.from_numpy(feats).T      # torch's GEMM: the same cosines within rounding
+    torch.testing.assert_close(logv, log_vote_shares(sims, labels, 9, 80.0), atol=2e-4,
+                               rtol=0)
+    torch.testing.assert_close(best, sims.max(dim=1).values, atol=2e-6, rtol=0)
+    one = torch.cat([search.log_votes(q[i:i + 1], 80.0)[0] for i in range(len(q))])
+    assert torch.equal(one, logv)
+
+
+@pytest.mark.parametrize('dtype', ['int4', 'int8'])
+def test_exact_search_reads_the_codes_of_an_integer_bank(lib, dtype: str) -> None:
+    # a bank stored as int4 / int8 is scanned from its int8 codes (a quarter of the bytes):
+    # the same cosines within float32 rounding, and still the same in any batch
+    rng = np.random.default_rng(8)
+    rows = from_stored(quantized(torch.from_numpy(_unit(rng, 2_001, 100)), dtype))
+    labels = torch.from_numpy(rng.integers(0, 6, len(rows)))
+    search = ExactSearch(rows, labels, 6)
+    assert search.scans_codes
+    codes, norms = search._rows
+    assert codes.dtype == np.int8 and np.abs(codes).max() == (7 if dtype == 'int4' else 127)
+    q = torch.from_numpy(_unit(rng, 9, 100))
+    sims = search.similarities(q)
+    torch.testing.assert_close(sims, q @ rows.T, atol=2e-6, rtol=0)
+    one = torch.cat([search.similarities(q[i:i + 1]) for i in range(len(q))])
+    assert torch.equal(one, sims)
+    # rows that are not normalised codes (a float bank) are scanned as float32 rows
+    assert _stored_codes(_unit(rng, 50, 100)) is None
+    assert not ExactSearch(torch.from_numpy(_unit(rng, 50, 100)), labels[:50], 6).scans_codes
