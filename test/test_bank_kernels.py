@@ -1,14 +1,19 @@
-"""The classifier's compiled bank scans: batched, exact, the same result in any batch.
+"""The classifier's fast paths: batched exact scans, the same results in any batch.
 
-pgn_dots.c (the exact vote's cosines) and pgn_search.c's pgn_scan_i8_multi (the indexed
-search's coarse pass over a batch of queries).
+pgn_dots.c (the exact vote's cosines), pgn_search.c's pgn_scan_i8_multi (the indexed
+search's coarse pass over a batch of queries), and a two-section bank's scan section on a
+helper thread.
 """
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 import torch
+
+import point_gn_ros.bank.classifier as classifier_mod
 
 from point_gn_ros.bank.bank_file import from_stored
 from point_gn_ros.bank.head import ExactSearch, _stored_codes, log_vote_shares
@@ -129,3 +134,33 @@ def test_exact_search_reads_the_codes_of_an_integer_bank(lib, dtype: str) -> Non
     # rows that are not normalised codes (a float bank) are scanned as float32 rows
     assert _stored_codes(_unit(rng, 50, 100)) is None
     assert not ExactSearch(torch.from_numpy(_unit(rng, 50, 100)), labels[:50], 6).scans_codes
+
+
+def test_two_sections_on_two_threads_give_the_one_thread_answer(monkeypatch) -> None:
+    # the shipped bank; demo objects whose gate is unsure need both sections: the scan
+    # section then runs on the helper thread, with the same probabilities to the bit
+    from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
+    from point_gn_ros.recognizer import Recognizer
+
+    if classifier_mod._section_helper() is None:
+        pytest.skip('one usable CPU: no helper thread to test')
+    rec = Recognizer.from_bank(None, threads=1)
+    rng = np.random.default_rng(0)
+    feats = rec.encode([place_in_sensor_frame(x, rng) for x in load_demo_objects().xyz])
+    p = rec.classifier.gate.scan_probability(feats)
+    mixed = (p > classifier_mod.GATE_SKIP) & (p < 1 - classifier_mod.GATE_SKIP)
+    assert mixed.sum() >= 2 and (~mixed).sum() >= 2
+    views = rec.classifier.views
+    seen: list[str] = []
+    evaluate = views.evaluate
+    monkeypatch.setattr(views, 'evaluate',
+                        lambda f: (seen.append(threading.current_thread().name), evaluate(f))[1])
+    batch = torch.cat([feats[mixed][:2], feats[~mixed][:2]])
+    two = [rec.classifier.classify(batch), rec.classifier.classify(feats[mixed][:1])]
+    assert seen and all(name.startswith('pgn_scans') for name in seen)
+    monkeypatch.setattr(classifier_mod, '_section_helper', lambda: None)
+    one = [rec.classifier.classify(batch), rec.classifier.classify(feats[mixed][:1])]
+    assert not seen[-1].startswith('pgn_scans')
+    for a, b in zip(two, one, strict=True):
+        assert np.array_equal(a.probability, b.probability)
+        assert np.array_equal(a.novelty, b.novelty) and np.array_equal(a.labels, b.labels)

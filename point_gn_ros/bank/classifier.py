@@ -29,7 +29,9 @@ lone query would otherwise read the whole bank.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+import threading
 
 import numpy as np
 import torch
@@ -37,6 +39,7 @@ import torch
 from point_gn_ros.bank.head import ExactSearch, VoteSearch
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.bank.vote_prior import vote_log_bias
+from point_gn_ros.core.encoder import default_threads
 
 UNKNOWN = -1
 SEARCHES = ('auto', 'exact', 'indexed')
@@ -51,6 +54,25 @@ _MAX_BLOCK = 1 << 24
 # probability would be under 1e-6 (the gate is confident for ~85 % of queries, so most
 # queries search one section, not two).
 GATE_SKIP = 1e-6
+
+
+_helper: ThreadPoolExecutor | None = None
+_helper_lock = threading.Lock()
+
+
+def _section_helper() -> ThreadPoolExecutor | None:
+    """The thread that evaluates a two-section bank's scan section, or None on one CPU."""
+    global _helper
+    with _helper_lock:
+        if _helper is None and default_threads() > 1:
+            _helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix='pgn_scans')
+        return _helper
+
+
+def _evaluate_no_grad(clf: 'Classifier', features: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    with torch.no_grad():        # grad mode is per thread
+        return clf.evaluate(features)
 
 
 @dataclass
@@ -204,15 +226,25 @@ class Classifier:
         # Each row is the gate's mix of the sections; a section weighing < GATE_SKIP for a
         # row is skipped for it and its weight given to the other one.
         use_c, use_v = p_scan < 1 - GATE_SKIP, p_scan > GATE_SKIP
+        # Every row in one section (most lone queries): its result as it is, which is what
+        # the mix below gives then (weight 1, the other section's 0), without the masking.
+        if not use_v.any():
+            return (*self._section(features), p_scan)
+        if not use_c.any():
+            return (*self.views.evaluate(features), p_scan)
         g = torch.where(use_v, torch.where(use_c, p_scan, 1.0), 0.0)
+        # Both sections: the scan section on the helper thread while this one evaluates the
+        # complete section (their scans release the GIL); the same results either way.
+        helper = _section_helper() if self.device.type == 'cpu' else None
+        scans = helper.submit(_evaluate_no_grad, self.views, features[use_v]) if helper \
+            else None
+        parts = [self._section(features[use_c]),
+                 scans.result() if scans else self.views.evaluate(features[use_v])]
         prob = torch.zeros(len(features), len(self.bank.class_names), device=self.device)
         novelty = torch.zeros(len(features), device=self.device)
-        for rows, weight, section in ((use_c, 1 - g, self._section),
-                                      (use_v, g, self.views.evaluate)):
-            if rows.any():
-                p, n = section(features[rows])
-                prob[rows] += weight[rows, None] * p
-                novelty[rows] += weight[rows] * n
+        for rows, weight, (p, n) in zip((use_c, use_v), (1 - g, g), parts, strict=True):
+            prob[rows] += weight[rows, None] * p
+            novelty[rows] += weight[rows] * n
         return prob, novelty, p_scan
 
     def _section(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -49,6 +49,9 @@ void pgn_scan_i8(const int8_t *codes, int64_t n, int64_t r, const int8_t *q, int
         const __m256i ones = _mm256_set1_epi16(1);
         for (int64_t i = 0; i < n; ++i) {
             const int8_t *row = codes + i * r;
+            /* rows ahead, one prefetch per cache line (the pass is bound by memory) */
+            if (i + 24 < n)
+                for (int64_t o = 0; o < r; o += 64) __builtin_prefetch(row + 24 * r + o);
             __m256i acc = _mm256_setzero_si256();
             for (int64_t j = 0; j < r; j += 32) {
                 const __m256i c = _mm256_loadu_si256((const void *)(row + j));
@@ -93,6 +96,8 @@ void pgn_scan_i8_multi(const int8_t *codes, int64_t n, int64_t r, const int8_t *
                 const int8_t *qb = q + b0 * r;
                 for (int64_t i = i0; i < i1; ++i) {
                     const int8_t *row = codes + i * r;
+                    if (b0 == 0 && i + 24 < n)      /* the first group reads from memory */
+                        for (int64_t o = 0; o < r; o += 64) __builtin_prefetch(row + 24 * r + o);
                     __m256i acc[SCAN_GROUP];
                     for (int t = 0; t < SCAN_GROUP; ++t) acc[t] = _mm256_setzero_si256();
                     for (int64_t j = 0; j < r; j += 32) {
