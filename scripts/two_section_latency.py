@@ -1,10 +1,11 @@
-"""Lone queries needing both sections of a two-section bank: with and without the helper.
+"""Lone queries on the shipped two-section bank: helper-thread paths against one thread.
 
-Wall time with and without the helper thread (bank/classifier.py), interleaved, and
-whether the answers are identical.
-
-`python scripts/two_section_latency.py [--passes 30]`: the shipped default bank, the demo
-objects placed in a sensor frame (the node bench's input), one torch thread.
+`--case both` (default): the demo objects placed in a sensor frame (the node bench's input)
+whose gate needs both sections; with and without the helper thread that evaluates the scan
+section (bank/classifier.py). `--case scans`: simulated single-view scans the gate sends to
+the scan section alone; with and without the coarse pass split over the helper thread
+(bank/search.py, `SPLIT_MIN_ROWS`). Interleaved passes, wall and process CPU time, one torch
+thread, and whether the answers are identical.
 """
 
 from __future__ import annotations
@@ -18,35 +19,47 @@ import torch
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--case', choices=('both', 'scans'), default='both')
     ap.add_argument('--passes', type=int, default=30)
     args = ap.parse_args()
     torch.set_num_threads(1)
     import point_gn_ros.bank.classifier as clf_mod
+    import point_gn_ros.bank.search as search_mod
     from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
     from point_gn_ros.recognizer import Recognizer
 
     rec = Recognizer.from_bank(None, threads=1)
     rng = np.random.default_rng(0)
-    feats = rec.encode([place_in_sensor_frame(x, rng) for x in load_demo_objects().xyz])
+    scans = args.case == 'scans'
+    feats = rec.encode([place_in_sensor_frame(x, rng, single_view=scans)
+                        for x in load_demo_objects().xyz])
     p = rec.classifier.gate.scan_probability(feats)
-    both = feats[(p > clf_mod.GATE_SKIP) & (p < 1 - clf_mod.GATE_SKIP)]
-    print(f'{len(both)} of {len(feats)} objects need both sections')
-    helper = clf_mod._section_helper
-    times: dict[str, list[float]] = {'helper thread': [], 'one thread': []}
+    skip = clf_mod.GATE_SKIP
+    queries = feats[p >= 1 - skip] if scans else feats[(p > skip) & (p < 1 - skip)]
+    print(f'{len(queries)} of {len(feats)} objects in this case')
+    helper, split = clf_mod.helper_thread, search_mod.SPLIT_MIN_ROWS
+    modes = ('helper thread', 'one thread')
+    times: dict[str, list[float]] = {m: [] for m in modes}
+    cpu = dict.fromkeys(modes, 0.0)
     answers: dict[tuple[str, int], np.ndarray] = {}
     for _ in range(args.passes):
-        for mode in times:
-            clf_mod._section_helper = helper if mode == 'helper thread' else (lambda: None)
-            for i in range(len(both)):
+        for mode in modes:
+            on = mode == 'helper thread'
+            clf_mod.helper_thread = helper if on else (lambda: None)
+            search_mod.SPLIT_MIN_ROWS = split if on else 1 << 62
+            c0 = time.process_time()
+            for i in range(len(queries)):
                 t0 = time.perf_counter()
-                out = rec.classifier.classify(both[i:i + 1])
+                out = rec.classifier.classify(queries[i:i + 1])
                 times[mode].append(time.perf_counter() - t0)
                 answers.setdefault((mode, i), out.probability)
+            cpu[mode] += time.process_time() - c0
     for mode, t in times.items():
         print(f'{mode}: wall p50 {np.percentile(t, 50) * 1e3:.2f} ms, '
-              f'p90 {np.percentile(t, 90) * 1e3:.2f} ms')
-    same = all(np.array_equal(answers[('helper thread', i)], answers[('one thread', i)])
-               for i in range(len(both)))
+              f'p90 {np.percentile(t, 90) * 1e3:.2f} ms; process CPU '
+              f'{cpu[mode] / len(t) * 1e3:.2f} ms per query')
+    same = all(np.array_equal(answers[(modes[0], i)], answers[(modes[1], i)])
+               for i in range(len(queries)))
     print('identical answers:', same)
 
 

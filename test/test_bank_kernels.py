@@ -79,7 +79,7 @@ def test_scan_i8_multi_equals_one_query_at_a_time(lib, r: int) -> None:
             assert np.array_equal(one, codes.astype(np.int32) @ q[b].astype(np.int32))
 
 
-def test_candidates_of_a_batch_are_each_querys_own() -> None:
+def test_candidates_of_a_batch_are_each_querys_own(monkeypatch) -> None:
     feats, labels = synthetic_bank(5_000, 128, seed=5, classes=12)
     index = BankIndex(feats, labels, 12, candidates=300)
     q = _unit(np.random.default_rng(6), 7, 128)
@@ -87,6 +87,24 @@ def test_candidates_of_a_batch_are_each_querys_own() -> None:
     assert many.shape == (7, 300)
     for b in range(len(q)):
         assert np.array_equal(np.sort(many[b]), np.sort(index.candidates_for(q[b])))
+    # a lone query split over two threads (large indexes): the same scores, hence candidates
+    import point_gn_ros.bank.search as search_mod
+    pool = search_mod.helper_thread()
+    if pool is not None:
+        used: list[int] = []
+
+        class Counting:
+            def submit(self, *a):
+                used.append(1)
+                return pool.submit(*a)
+
+        monkeypatch.setattr(search_mod, 'SPLIT_MIN_ROWS', 1)
+        monkeypatch.setattr(search_mod, 'spare_cpu', lambda: True)
+        monkeypatch.setattr(search_mod, 'helper_thread', lambda: Counting())
+        for b in range(len(q)):
+            assert np.array_equal(index.candidates_many(q[b:b + 1])[0], many[b])
+        assert len(used) == len(q)
+        monkeypatch.undo()
     # without a C compiler: numpy's pass finds the same candidates
     index._lib = None
     assert np.array_equal(np.sort(index.candidates_many(q), axis=1), np.sort(many, axis=1))
@@ -142,7 +160,7 @@ def test_two_sections_on_two_threads_give_the_one_thread_answer(monkeypatch) -> 
     from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
     from point_gn_ros.recognizer import Recognizer
 
-    if classifier_mod._section_helper() is None:
+    if classifier_mod.helper_thread() is None:
         pytest.skip('one usable CPU: no helper thread to test')
     rec = Recognizer.from_bank(None, threads=1)
     rng = np.random.default_rng(0)
@@ -157,10 +175,10 @@ def test_two_sections_on_two_threads_give_the_one_thread_answer(monkeypatch) -> 
                         lambda f: (seen.append(threading.current_thread().name), evaluate(f))[1])
     batch = torch.cat([feats[mixed][:2], feats[~mixed][:2]])
     two = [rec.classifier.classify(batch), rec.classifier.classify(feats[mixed][:1])]
-    assert seen and all(name.startswith('pgn_scans') for name in seen)
-    monkeypatch.setattr(classifier_mod, '_section_helper', lambda: None)
+    assert seen and all(name.startswith('pgn_helper') for name in seen)
+    monkeypatch.setattr(classifier_mod, 'helper_thread', lambda: None)
     one = [rec.classifier.classify(batch), rec.classifier.classify(feats[mixed][:1])]
-    assert not seen[-1].startswith('pgn_scans')
+    assert not seen[-1].startswith('pgn_helper')
     for a, b in zip(two, one, strict=True):
         assert np.array_equal(a.probability, b.probability)
         assert np.array_equal(a.novelty, b.novelty) and np.array_equal(a.labels, b.labels)

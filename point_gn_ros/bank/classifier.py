@@ -29,17 +29,15 @@ lone query would otherwise read the whole bank.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-import threading
 
 import numpy as np
 import torch
 
 from point_gn_ros.bank.head import ExactSearch, VoteSearch
+from point_gn_ros.bank.helper import helper_thread
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.bank.vote_prior import vote_log_bias
-from point_gn_ros.core.encoder import default_threads
 
 UNKNOWN = -1
 SEARCHES = ('auto', 'exact', 'indexed')
@@ -54,19 +52,6 @@ _MAX_BLOCK = 1 << 24
 # probability would be under 1e-6 (the gate is confident for ~85 % of queries, so most
 # queries search one section, not two).
 GATE_SKIP = 1e-6
-
-
-_helper: ThreadPoolExecutor | None = None
-_helper_lock = threading.Lock()
-
-
-def _section_helper() -> ThreadPoolExecutor | None:
-    """The thread that evaluates a two-section bank's scan section, or None on one CPU."""
-    global _helper
-    with _helper_lock:
-        if _helper is None and default_threads() > 1:
-            _helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix='pgn_scans')
-        return _helper
 
 
 def _evaluate_no_grad(clf: 'Classifier', features: torch.Tensor
@@ -235,7 +220,7 @@ class Classifier:
         g = torch.where(use_v, torch.where(use_c, p_scan, 1.0), 0.0)
         # Both sections: the scan section on the helper thread while this one evaluates the
         # complete section (their scans release the GIL); the same results either way.
-        helper = _section_helper() if self.device.type == 'cpu' else None
+        helper = helper_thread() if self.device.type == 'cpu' else None
         scans = helper.submit(_evaluate_no_grad, self.views, features[use_v]) if helper \
             else None
         parts = [self._section(features[use_c]),

@@ -32,26 +32,23 @@ it by bank size, `search='auto'`); `BankIndex.scores` gives plain vote shares li
 from __future__ import annotations
 
 import threading
-from typing import Any
 
 import numpy as np
 import torch
 
 from point_gn_ros.bank.head import _LOGIT_FLOOR, _TINY
+from point_gn_ros.bank.helper import helper_thread
+# The coarse coordinates (re-exported: scripts and tests import them from here).
+from point_gn_ros.bank.index_basis import COARSE_ENERGY, IndexBasis, _project  # noqa: F401
 from point_gn_ros.core import kernels
+from point_gn_ros.core.encoder import spare_cpu
 
-# Default coarse width: the fewest coordinates (a multiple of 32) holding this share of the
-# bank's energy: 128 of 512 for issue 13's synthetic bank, 192 of 224 for the whitened
-# sensor bank, 512 of 640 for the shipped (whitened) one (BENCHMARKS.md "Large banks").
-COARSE_ENERGY = 0.9
 # Entries rescored exactly per query. 512 left up to 5 of 2,468 single-view labels
 # different from the exact search on the shipped bank even at full width; 1,024 none.
 CANDIDATES = 1024
-# Rows used to find the principal axes (a sample: the rotation only steers the coarse
-# pass, the rescoring is exact whatever it is).
-_PCA_ROWS = 20_000
-# Rows per block when quantizing or encoding many rows (bounds the float temporaries).
-_BLOCK_ROWS = 8192
+# A lone query's coarse pass is split over two threads from this many entries (below it the
+# hand-over costs about what the second thread saves).
+SPLIT_MIN_ROWS = 20_000
 # A derived index (`BankIndex.derive`: enrollments append rows, removals drop a class) keeps
 # its basis until this share of the rows it was fitted on was appended or removed; then the
 # next version fits a fresh one. (20 new examples on the 39k-entry scan section: 0.05 %.)
@@ -70,78 +67,6 @@ def vote_shares(sims: np.ndarray, labels: np.ndarray, num_classes: int,
     w = np.exp(logits - logits.max())
     votes = np.bincount(labels, weights=w, minlength=num_classes)
     return (votes / votes.sum()).astype(np.float32)
-
-
-class IndexBasis:
-    """The coarse pass's coordinates: the bank's leading principal axes, int8 scales.
-
-    rotation (d, r) float32 orthonormal columns; scale (r,) float32 per coordinate (a
-    coordinate's largest |value| over the rows it was fitted on maps to 127); energy: share
-    of those rows' squared norms on the r coordinates; rows: how many rows it was fitted on.
-    """
-
-    def __init__(self, rotation: np.ndarray, scale: np.ndarray, energy: float, rows: int
-                 ) -> None:
-        self.rotation, self.scale, self.energy, self.rows = rotation, scale, energy, rows
-
-    @classmethod
-    def fit(cls, feats: np.ndarray, coarse_dims: int | None, lib: Any
-            ) -> tuple['IndexBasis', np.ndarray]:
-        """Fit on feats (N, d) float32 -> (basis, the rows' coordinates (N, r) float32)."""
-        n, d = feats.shape
-        # Principal axes of the (uncentred) second moment: they carry the most of every
-        # dot product, so the leading coordinates approximate the cosines best.
-        # In torch, on its thread budget (the node's torch_threads): numpy's BLAS threads
-        # spin-wait on a loaded machine, which made a build cost several times its work.
-        sample = torch.from_numpy(feats[::max(1, n // _PCA_ROWS)])
-        evals, evecs = torch.linalg.eigh((sample.T @ sample).double())
-        evals, evecs = evals.flip(0).clamp_min(0.0), evecs.flip(1)      # descending
-        if coarse_dims is None:
-            share = (evals.cumsum(0) / evals.sum().clamp_min(1e-30)).numpy()
-            coarse_dims = 32 * (int(np.searchsorted(share, COARSE_ENERGY - 1e-9)) // 32 + 1)
-        r = min(d, max(32, coarse_dims // 32 * 32))
-        order = torch.arange(r)
-        rotation = evecs[:, order].float().contiguous().numpy()          # (d, r)
-        # share of the bank's squared norms on the coarse coordinates: the closer to 1,
-        # the better the coarse pass ranks (issue 13's 512-d bank, 128 coords: 0.93)
-        energy = float(evals[order].sum() / evals.sum().clamp_min(1e-30))
-        z = _project(feats, rotation, lib)
-        scale = np.maximum(np.abs(z).max(axis=0), 1e-12) / 127.0          # (r,)
-        return cls(rotation, scale, energy, n), z
-
-    def quantize(self, z: np.ndarray) -> np.ndarray:
-        """Coordinates (M, r) float32 -> int8 codes (M, r), saturated at +-127.
-
-        In blocks of rows: a large bank's float temporaries stay small.
-        """
-        out = np.empty(z.shape, np.int8)
-        for i in range(0, len(z), _BLOCK_ROWS):
-            blk = z[i:i + _BLOCK_ROWS] / self.scale
-            np.rint(blk, out=blk)
-            out[i:i + _BLOCK_ROWS] = np.clip(blk, -127, 127, out=blk)
-        return out
-
-    def encode(self, feats: np.ndarray, lib: Any) -> np.ndarray:
-        """Rows (M, d) float32 -> int8 codes (M, r); row by row the same in any batch."""
-        if len(feats) <= _BLOCK_ROWS:
-            return self.quantize(_project(feats, self.rotation, lib))
-        return np.concatenate([self.encode(feats[i:i + _BLOCK_ROWS], lib)
-                               for i in range(0, len(feats), _BLOCK_ROWS)])
-
-
-def _project(feats: np.ndarray, rotation: np.ndarray, lib: Any) -> np.ndarray:
-    """Rows feats (N, d) @ rotation (d, r) -> (N, r) float32.
-
-    With the C kernels each row's result does not depend on the others (pgn_project.c), so
-    an index's appended codes equal a fresh build's; torch's GEMM otherwise.
-    """
-    if lib is None:
-        return (torch.from_numpy(feats) @ torch.from_numpy(rotation)).numpy()
-    feats = np.ascontiguousarray(feats, dtype=np.float32)
-    out = np.empty((feats.shape[0], rotation.shape[1]), np.float32)
-    lib.pgn_project_f32(feats.ctypes.data, feats.shape[0], feats.shape[1],
-                        rotation.ctypes.data, rotation.shape[1], out.ctypes.data)
-    return out
 
 
 def _check_rows(features: np.ndarray, labels: np.ndarray, num_classes: int
@@ -285,14 +210,34 @@ class BankIndex:
             order = np.argsort(-coarse, axis=1, kind='stable')[:, :m]
             return np.sort(order, axis=1).astype(np.int32)
         coarse, keys = self._scratch(len(q))
-        self._lib.pgn_scan_i8_multi(self.codes.ctypes.data, n, self.coarse_dims,
-                                    q8.ctypes.data, len(q), coarse.ctypes.data)
+        self._coarse_pass(q8, coarse)
         idx = np.empty((len(q), m), np.int32)
         for b in range(len(q)):
             got = self._lib.pgn_top_m(coarse[b].ctypes.data, n, m, idx[b].ctypes.data,
                                       keys.ctypes.data)
             assert got == m, (got, m)   # m <= n: pgn_top_m returns exactly m
         return idx
+
+    def _coarse_pass(self, q8: np.ndarray, coarse: np.ndarray) -> None:
+        """coarse[:B] = codes . q8 (B, r) for every entry: one pass for the batch.
+
+        A lone query against a large index scans the second half of the rows on the helper
+        thread (bank/helper.py) while this one scans the first, when a CPU is to spare (as
+        for a lone cloud, core/encoder.py `spare_cpu`): the pass is bound by memory, which
+        two cores read faster. Integer sums: the same scores either way.
+        """
+        n, r, nq = self.codes.shape[0], self.coarse_dims, len(q8)
+        helper = helper_thread() if nq == 1 and n >= SPLIT_MIN_ROWS and spare_cpu() else None
+        if helper is None:
+            self._lib.pgn_scan_i8_multi(self.codes.ctypes.data, n, r, q8.ctypes.data, nq,
+                                        coarse.ctypes.data)
+            return
+        h = n // 2
+        second = helper.submit(self._lib.pgn_scan_i8, self.codes[h:].ctypes.data, n - h, r,
+                               q8.ctypes.data, coarse[0, h:].ctypes.data)
+        self._lib.pgn_scan_i8(self.codes.ctypes.data, h, r, q8.ctypes.data,
+                              coarse.ctypes.data)
+        second.result()
 
     def _scratch(self, batch: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Per-thread (B, N) int32 scores and (N,) int64 keys, reused across queries.

@@ -43,6 +43,28 @@ def default_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+_spare: tuple[float, bool] = (-1e9, False)     # (when checked, result)
+
+
+def spare_cpu() -> bool:
+    """Whether a second CPU is likely free: the 1-minute load average leaves one spare.
+
+    Checked at most once a second. What lets one piece of work take a second thread (a lone
+    cloud here, a lone query's coarse pass in bank/search.py) without taking a core from
+    other work on a busy machine.
+    """
+    global _spare
+    now = time.monotonic()
+    checked, spare = _spare
+    if now - checked > 1.0:
+        try:
+            spare = default_threads() > 1 and os.getloadavg()[0] <= default_threads() - 1.0
+        except OSError:  # no load average on this platform
+            spare = False
+        _spare = (now, spare)
+    return spare
+
+
 class PointGNEncoder:
     """Point-GN encoder agreeing with encoder_naive.NaiveEncoder (within 1e-4 relative).
 
@@ -64,7 +86,6 @@ class PointGNEncoder:
         if lone_threads not in (None, 1, 2):
             raise ValueError(f'lone_threads must be None, 1 or 2, got {lone_threads!r}')
         self.lone_threads = lone_threads
-        self._idle_checked = (-1.0, False)  # (monotonic time, spare CPU then)
         if backend not in ('auto', 'kernel', 'torch'):
             raise ValueError(f"backend must be 'auto', 'kernel' or 'torch', got {backend!r}")
         if backend == 'auto':
@@ -152,15 +173,7 @@ class PointGNEncoder:
             return self.lone_threads
         if self.threads < 2:
             return 1
-        now = time.monotonic()
-        checked, spare = self._idle_checked
-        if now - checked > 1.0:
-            try:
-                spare = os.getloadavg()[0] <= default_threads() - 1.0
-            except OSError:  # no load average on this platform
-                spare = False
-            self._idle_checked = (now, spare)
-        return 2 if spare else 1
+        return 2 if spare_cpu() else 1
 
     def _run_lone(self, xyz: np.ndarray, out: np.ndarray) -> None:
         lib = kernels.load()
