@@ -153,6 +153,7 @@ def resample_rows(quick: bool, repeats: int) -> list[Row]:
     # a single-view scan's typical size (issue 9's protocol), filled up to 1024
     scan = rng.normal(0, 1, (340, 3)).astype(np.float32)
     for upsample in ('repeat', 'midpoint'):
+        prepare(scan, upsample=upsample)   # warm: 'midpoint' imports scipy's k-d tree once
         t = _median_time(lambda u=upsample: prepare(scan, upsample=u), repeats)
         rows.append(dict(section='resample', what='prepare() 340 points -> 1024',
                          value=t * 1e3, unit='ms', note=f'upsample {upsample}'))
@@ -208,7 +209,19 @@ def default_bank_rows(repeats: int, device: str) -> list[Row]:
 
     Complete objects go to the exact complete section (int4 codes), scans to the indexed
     scan section (the gate routes them); lone queries are what a node at low rates sees.
+    One torch thread, as the node runs its classifier (`torch_threads`).
     """
+    import torch
+
+    saved = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _default_bank_rows(repeats, device)
+    finally:
+        torch.set_num_threads(saved)
+
+
+def _default_bank_rows(repeats: int, device: str) -> list[Row]:
     import numpy as np
 
     from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
