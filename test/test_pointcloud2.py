@@ -428,6 +428,15 @@ def test_make_pointcloud2_dtypes_and_layout() -> None:
             np.testing.assert_array_equal(out.fields[name], vals)
 
 
+def test_editing_a_built_message_leaves_the_next_one_alone() -> None:
+    # layouts are cached per field spec; a caller (the fuzz clients) may edit its fields
+    arrays = {'x': np.zeros(2, np.float32), 'y': np.ones(2, np.float32)}
+    first = make_pointcloud2(None, arrays)
+    first.fields[1].datatype, first.fields[0].offset = 9, 2**32 - 1
+    second = make_pointcloud2(None, arrays)
+    assert [(f.offset, f.datatype) for f in second.fields] == [(0, FLOAT32), (4, FLOAT32)]
+
+
 def test_make_pointcloud2_rejects_bad_input() -> None:
     with pytest.raises(ValueError, match='do not fit in int32'):
         make_pointcloud2(None, {'x': np.array([2**40])})

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import array
 from collections.abc import Mapping
-import functools
 from typing import Any
 
 import numpy as np
@@ -44,29 +43,6 @@ def _header(header: Any, frame_id: str | None) -> Any:
     return header
 
 
-@functools.lru_cache(maxsize=64)
-def _layout(spec: tuple[tuple[str, str], ...]) -> tuple[np.dtype, tuple[Any, ...]]:
-    """Packed little-endian record dtype and PointFields for ((name, native dtype), ...).
-
-    Cached: a node publishes the same layout for every answer, and building the dtype and
-    the PointField messages cost more than filling the record (PointFields are never
-    mutated once built, so messages can share them).
-    """
-    from sensor_msgs.msg import PointField
-
-    offsets, formats, pfields, offset = [], [], [], 0
-    for name, code in spec:
-        native = np.dtype(code)
-        offsets.append(offset)
-        formats.append(native.newbyteorder('<'))
-        pfields.append(PointField(name=name, offset=offset, datatype=_DATATYPE_OF[native],
-                                  count=1))
-        offset += native.itemsize
-    dtype = np.dtype({'names': [name for name, _ in spec], 'formats': formats,
-                      'offsets': offsets, 'itemsize': offset})
-    return dtype, tuple(pfields)
-
-
 def make_pointcloud2(header: Any, arrays: Mapping[str, np.ndarray], *,
                      frame_id: str | None = None, height: int = 1,
                      is_dense: bool | None = None) -> Any:
@@ -78,7 +54,7 @@ def make_pointcloud2(header: Any, arrays: Mapping[str, np.ndarray], *,
     ``frame_id`` overrides its frame. ``height`` > 1 makes an organized cloud of width
     N / height. ``is_dense`` defaults to "x/y/z all finite".
     """
-    from sensor_msgs.msg import PointCloud2
+    from sensor_msgs.msg import PointCloud2, PointField
 
     cols: dict[str, np.ndarray] = {}
     n = None
@@ -95,10 +71,18 @@ def make_pointcloud2(header: Any, arrays: Mapping[str, np.ndarray], *,
     if height < 1 or n % height:
         raise ValueError(f'{n} points cannot form an organized cloud of height {height}')
 
-    dtype, pfields = _layout(tuple((name, arr.dtype.newbyteorder('=').str)
-                                   for name, arr in cols.items()))
-    point_step = dtype.itemsize
-    rec = np.empty(n, dtype=dtype)
+    offsets, formats, pfields = [], [], []
+    offset = 0
+    for name, arr in cols.items():
+        native = arr.dtype.newbyteorder('=')
+        offsets.append(offset)
+        formats.append(native.newbyteorder('<'))
+        pfields.append(PointField(name=name, offset=offset, datatype=_DATATYPE_OF[native],
+                                  count=1))
+        offset += native.itemsize
+    point_step = offset
+    rec = np.empty(n, dtype=np.dtype({'names': list(cols), 'formats': formats,
+                                      'offsets': offsets, 'itemsize': point_step}))
     for name, arr in cols.items():
         rec[name] = arr
     data = array.array('B')
@@ -111,7 +95,7 @@ def make_pointcloud2(header: Any, arrays: Mapping[str, np.ndarray], *,
     msg.header = _header(header, frame_id)
     msg.height = height if n else 1
     msg.width = n // height if n else 0
-    msg.fields = list(pfields)
+    msg.fields = pfields
     msg.is_bigendian = False
     msg.point_step = point_step
     msg.row_step = point_step * msg.width
