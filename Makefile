@@ -70,7 +70,7 @@ CACHE ?=
 default-bank: $(STAMP)
 	$(VENV)/bin/point_gn bank build $(MODELNET) --split train --default-bank --yaw-align \
 		--upsample midpoint --views 8 --sections --dtype int4 --dims 512 640 --views-dims 224 320 \
-		--alphas 0.1 --weights 0.1 0.2 0.3 --cv-every 9 --wide-lda scans \
+		--alphas 0.1 --weights 0.1 0.2 0.3 --cv-every 9 --wide-lda scans --ridge complete \
 		$(if $(CACHE),--cache $(CACHE)) -o point_gn_ros/data/modelnet40_default.npz
 
 # The one-head sensor-realistic bank (not shipped since the two-section default bank holds the

@@ -152,6 +152,9 @@ def main(argv: list[str] | None = None) -> int:
         cid = live.current().class_names.index(name)
         queries.append(arrays[f'query_{c}'])
         query_labels += [cid] * len(arrays[f'query_{c}'])
+    t = time.perf_counter()
+    assert live.wait_refit(600), 'the background ridge refit did not finish'
+    ridge_wait_s = time.perf_counter() - t      # a kernel ridge term's full refit (live.py)
     snap = live.current()
     q_pred = snap.model.classifier.classify(torch.cat(queries)).labels
     q_true = np.asarray(query_labels)
@@ -183,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         'existing_drop_points': {k: 100 * (before[k] - after[k]) for k in before},
         'existing_called_new_class': taken,
         'enroll_seconds_per_object_max': max(enroll_s),
+        'ridge_refit_wait_seconds': ridge_wait_s,
         'near_duplicates': dups,
     }
     if cv is not None:

@@ -34,9 +34,11 @@ import sys
 import numpy as np
 import torch
 
+from point_gn_ros.bank import ridge
 from point_gn_ros.bank.builder import feature_cache_path
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, refit
+from point_gn_ros.bank.live import refit_ridge_sections
 from point_gn_ros.bank.vote_prior import META_KEY
 from point_gn_ros.core.config import ENCODER_VERSION
 from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
@@ -65,9 +67,13 @@ def subset(bf: BankFile, keep_obj: np.ndarray, raw: np.ndarray) -> BankFile:
     views = replace(v, features=v.features[torch.from_numpy(vk)],
                     labels=v.labels[torch.from_numpy(vk)],
                     head=without_rows(v, raw[scan_rows], v.labels[torch.from_numpy(~vk)]))
-    main = replace(b, features=b.features[torch.from_numpy(keep_obj)],
-                   labels=b.labels[torch.from_numpy(keep_obj)], views=views,
-                   head=without_rows(b, raw[per * gone], b.labels[torch.from_numpy(~keep_obj)]))
+    head = without_rows(b, raw[per * gone], b.labels[torch.from_numpy(~keep_obj)])
+    keep = torch.from_numpy(keep_obj)
+    if head is not None and head.ridge_coef is not None:   # refitted without them, in full
+        head = replace(head, ridge_coef=ridge.fit(b.features[keep], b.labels[keep],
+                                                  b.num_classes, head.ridge_gamma,
+                                                  head.ridge_lambda))
+    main = replace(b, features=b.features[keep], labels=b.labels[keep], views=views, head=head)
     return BankFile(main, bf.stored[keep_obj], views=BankFile(views, bf.views.stored[vk]))
 
 
@@ -237,6 +243,9 @@ def main(argv: list[str] | None = None) -> int:
             cur = add_examples(cur, f, name, source='instance_cv', policy=policy).file
             names.append(name)
             q_ids += [cur.bank.class_names.index(name)] * args.query_views
+        # A kernel ridge term is refitted in full after the enrollments, as the node's
+        # background refit does (bank/live.py): the state the robot keeps.
+        cur = refit_ridge_sections(cur)
         q_inst, q_ids = torch.cat(query), np.asarray(q_ids)
         for b, fd in grid:
             bb = with_beta(with_debias(cur, fd, names), b, names, args.scope)

@@ -10,6 +10,7 @@ from pathlib import Path
 import time
 
 import numpy as np
+import torch
 import pytest
 
 from node_testing import (NODE_FQN, TEST_NUM_POINTS, Harness, NodeProcess, assert_same_labels,
@@ -333,3 +334,63 @@ def test_enrollment_under_load_loses_no_answer(harness: Harness, tiny_bank: Path
         if c is not None:
             c.close()
         assert node.stop() == 0, node.log()
+
+
+@pytest.fixture(scope='module')
+def ridge_bank(tiny_bank: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny bank with a kernel ridge term (bank/ridge.py) on its rows, fixed knobs."""
+    from dataclasses import replace
+
+    from point_gn_ros.bank import ridge
+    from point_gn_ros.bank.store import FeatureBank
+    bank = FeatureBank.load(tiny_bank)
+    head = bank.classifier_head
+    head = replace(head, ridge_coef=ridge.fit(bank.features, bank.labels, bank.num_classes,
+                                              1.0, 0.01),
+                   ridge_gamma=1.0, ridge_lambda=0.01, ridge_weight=30.0)
+    meta = {**bank.meta, 'head': {**bank.meta['head'], 'ridge': {
+        'stored_dtype': 'float32', 'temperature': head.temperature,
+        'temperature_without': head.temperature}}}
+    path = tmp_path_factory.getbasetemp() / 'node_ridge_bank.npz'
+    return replace(bank, head=head, meta=meta).save(path, dtype='float32')
+
+
+def test_enrollment_into_a_ridge_bank_is_refitted_in_the_background(
+        harness: Harness, ridge_bank: Path, tmp_path: Path, sofa) -> None:  # noqa: ANN001
+    """The new class answers at once; the full ridge refit arrives as the next version."""
+    from point_gn_ros.bank import ridge
+    from point_gn_ros.bank.store import FeatureBank
+
+    saved = tmp_path / 'ridge_taught.npz'
+    node = _start(ridge_bank, tmp_path / 'node.log', enroll_class=NEW,
+                  save_bank_path=str(saved))
+    c = None
+    try:
+        c = Client(harness, node)
+        c.wait_classes(lambda names: len(names) == 6)
+        for i, cloud in enumerate(sofa[0]):
+            c.pub_cloud.publish(cloud_msg(cloud, 'base_link', stamp(3, i)))
+            harness.spin_for(0.05)
+        names = c.wait_classes(lambda names: NEW in names)
+        # The examples make a version answered without the term (one, or more if they came
+        # in several enrollments); the term refitted in full makes the next one.
+        assert c.h.spin_until(lambda: int(latest_diagnostics(c.diag, ': enrollment')
+                                          .get('bank_version', 0)) >= 2, TIMEOUT_S), node.log()
+        assert all(int(a[0][0]) == names.index(NEW) for a in c.classify(sofa[1], 600))
+        deadline = time.monotonic() + TIMEOUT_S
+        while True:
+            ok, text = c.call('save_bank')
+            assert ok, text
+            if not ridge.is_pending(FeatureBank.load(saved).meta) or \
+                    time.monotonic() > deadline:
+                break
+            harness.spin_for(0.5)
+    finally:
+        if c is not None:
+            c.close()
+        assert node.stop() == 0, node.log()
+    assert 'Traceback' not in node.log()
+    back = FeatureBank.load(saved)
+    assert back.head.has_ridge and not ridge.is_pending(back.meta)
+    assert back.head.ridge_coef.shape == (len(back), 7)
+    assert torch.equal(back.head.ridge_coef, ridge.fit(back.features, back.labels, 7, 1.0, 0.01))

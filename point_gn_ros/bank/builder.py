@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections import Counter
 from datetime import datetime, UTC
 import hashlib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -54,18 +55,29 @@ def feature_cache_path(dataset, cfg: EncoderConfig, cache_dir: Path | str) -> Pa
     return Path(cache_dir) / f'feats_{key[:16]}.npy'
 
 
-def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel: Selection
-                 ) -> tuple[FeatureTransform, Head, torch.Tensor]:
+def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel: Selection,
+                 stored_dtype: str = 'float32') -> tuple[FeatureTransform, Head, torch.Tensor]:
     """Fit the CV-chosen transform and head on all of feats (N, D).
 
-    -> transform, head, bank rows in the vote's space (N, d) float32.
+    -> transform, head, bank rows in the vote's space (N, d) float32. With a kernel ridge
+    term (sel.ridge_weight > 0) the rows come back as the file will store them in
+    `stored_dtype` (int4 rounding would otherwise undo the ridge fit: bank/ridge.py).
     """
     tf = FeatureTransform.fit(feats, sel.standardize, sel.dims)
     z = tf(feats)
-    head = fit_head(z, torch.as_tensor(np.asarray(labels), dtype=torch.int64), num_classes,
-                    sel.gamma, sel.alpha, sel.lda_alpha, sel.fusion_weight, sel.temperature,
+    lab = torch.as_tensor(np.asarray(labels), dtype=torch.int64)
+    head = fit_head(z, lab, num_classes, sel.gamma, sel.alpha, sel.lda_alpha,
+                    sel.fusion_weight, sel.temperature,
                     x=tf.standardized(feats) if sel.lda_wide else None)
-    return tf, head, head.vote_space(z)
+    rows = head.vote_space(z)
+    if sel.ridge_weight > 0:
+        from point_gn_ros.bank import ridge
+        rows = ridge.stored_rows(rows, stored_dtype)
+        head = replace(head, ridge_coef=ridge.fit(rows, lab, num_classes, sel.ridge_gamma,
+                                                  sel.ridge_lambda),
+                       ridge_gamma=sel.ridge_gamma, ridge_lambda=sel.ridge_lambda,
+                       ridge_weight=sel.ridge_weight)
+    return tf, head, rows
 
 
 def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu',
@@ -79,7 +91,8 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                alphas: tuple[float, ...] = DEFAULT_ALPHAS,
                weights: tuple[float, ...] = DEFAULT_WEIGHTS,
                lda_alphas: tuple[float, ...] = DEFAULT_LDA_ALPHAS,
-               cv_subset: np.ndarray | None = None, wide_lda: bool = False) -> FeatureBank:
+               cv_subset: np.ndarray | None = None, wide_lda: bool = False,
+               ridge: bool = False, stored_dtype: str = 'float32') -> FeatureBank:
     """Encode `dataset`, choose transform and head by k-fold CV on it, return the bank.
 
     groups: (N,) int or None; entries sharing a group (an object and its simulated views)
@@ -87,6 +100,8 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
     cv_subset: (M,) int64 entry indices the CV runs on (default all; CV cost grows with the
     square of the bank): the knobs chosen there are then fitted on every entry.
     wide_lda: CV also weighs an LDA on every standardised encoder dim (bank/head.py).
+    ridge: CV also weighs a kernel ridge term (bank/ridge.py), fitted on the rows as a file
+    of `stored_dtype` holds them (save the bank with that dtype).
     """
     encoder = encoder or make_encoder(cfg, device)
     if feats is None:
@@ -96,8 +111,9 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
     sel = select(feats[torch.from_numpy(cv)], labels[cv], len(dataset.class_names), gammas,
                  standardize_options, dims_options, folds,
                  groups=None if groups is None else np.asarray(groups)[cv], alphas=alphas,
-                 weights=weights, lda_alphas=lda_alphas, wide_lda=wide_lda)
-    tf, head, vote_feats = fit_selected(feats, labels, len(dataset.class_names), sel)
+                 weights=weights, lda_alphas=lda_alphas, wide_lda=wide_lda, ridge=ridge)
+    tf, head, vote_feats = fit_selected(feats, labels, len(dataset.class_names), sel,
+                                        stored_dtype)
     counts = Counter(labels.tolist())
     meta = {
         'provenance': {
@@ -114,9 +130,11 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                                'standardize': list(standardize_options),
                                'dims': list(dims_options), 'alphas': list(alphas),
                                'lda_alphas': list(lda_alphas), 'weights': list(weights),
-                               'wide_lda': bool(wide_lda)}},
+                               'wide_lda': bool(wide_lda), 'ridge': bool(ridge)}},
         'head': sel.head_meta(),
     }
+    if head.has_ridge:   # fitted on rows rounded as this dtype stores them (store.py checks)
+        meta['head']['ridge']['stored_dtype'] = stored_dtype
     if sel.heldout_novelty is not None:
         # The default unknown rule thresholds the calibrated top-1 probability: on a pseudo
         # open set of the train split it separated unseen classes better than the novelty

@@ -172,8 +172,9 @@ class Classifier:
         self.transform = bank.transform.to(self.device)
         self.features = bank.features.to(self.device)
         self.labels = bank.labels.to(self.device)
-        self.search_kind = resolve_search(search, len(bank.labels), self.device,
-                                          index_min_entries)
+        # A kernel ridge term reads every entry's cosine: the exact search (bank/ridge.py).
+        self.search_kind = 'exact' if self.head.has_ridge else resolve_search(
+            search, len(bank.labels), self.device, index_min_entries)
         self.search = make_search(self.search_kind, self.features, self.labels,
                                   bank.num_classes,
                                   None if previous is None else previous.search)

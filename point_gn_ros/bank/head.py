@@ -13,6 +13,10 @@ Fitted from the bank alone (no gradient training). On transformed bank features 
   probability  softmax(fused / T)                          T: temperature by CV log-loss
   novelty      1 - max_i cos(u, u_i)                       in [0, 2]; 0 = a bank entry
 
+A kernel ridge term (bank/ridge.py, `ridge_coef`) adds ridge_weight x sum_i k(u, u_i) A_ic
+to fused: per-entry coefficients A (N, C) fitted in closed form so the bank reproduces its
+own labels under a wide kernel k; it needs every entry's cosine (the exact search).
+
 A wide LDA (`lda_wide`) fits the LDA on the transform's standardised rows before the PCA
 projection (x = `FeatureTransform.standardized`, all D encoder dims) instead of on z: the PCA
 keeps the directions of most spread, not those that separate classes best. Its coefficients
@@ -65,17 +69,29 @@ class Head:
     lda_precision: torch.Tensor | None = None
     lda_means: torch.Tensor | None = None
     lda_trace: float = 0.0       # wide LDA: tr(Sigma_a^-1 Sigma), see bank/lda.py lda_noise_trace
+    ridge_coef: torch.Tensor | None = None   # (N, C): one row per bank entry (bank/ridge.py)
+    ridge_gamma: float = 0.0
+    ridge_lambda: float = 0.0
+    ridge_weight: float = 0.0
 
     @property
     def is_plain_vote(self) -> bool:
-        return self.whiten is None and (self.lda_coef is None or self.fusion_weight == 0)
+        return self.whiten is None and (self.lda_coef is None or self.fusion_weight == 0) \
+            and not self.has_ridge
+
+    @property
+    def has_ridge(self) -> bool:
+        return self.ridge_coef is not None and self.ridge_weight > 0
 
     def to(self, device: torch.device | str) -> 'Head':
         def mv(t: torch.Tensor | None) -> torch.Tensor | None:
             return None if t is None else t.to(device)
         return Head(self.gamma, mv(self.whiten), mv(self.lda_coef), mv(self.lda_bias),
                     self.fusion_weight, self.temperature, self.lda_wide,
-                    mv(self.lda_precision), mv(self.lda_means), self.lda_trace)
+                    mv(self.lda_precision), mv(self.lda_means), self.lda_trace,
+                    # float64 once here: the ridge sum runs in float64 (bank/ridge.py)
+                    None if self.ridge_coef is None else self.ridge_coef.to(device, torch.float64),
+                    self.ridge_gamma, self.ridge_lambda, self.ridge_weight)
 
     def vote_space(self, z: torch.Tensor) -> torch.Tensor:
         """z: (B, d) transformed unit rows -> (B, d) rows the kernel vote compares."""
@@ -110,7 +126,15 @@ class Head:
         """
         if z.shape[0] == 0:
             return torch.zeros(0, search.num_classes), torch.zeros(0)
-        fused, best = search.log_votes(self.vote_space(z), self.gamma)
+        u = self.vote_space(z)
+        if self.has_ridge:
+            if not isinstance(search, ExactSearch):
+                raise ValueError('a kernel ridge head needs the exact search')
+            fused, best, ridge = search.ridge_log_votes(u, self.gamma, self.ridge_coef,
+                                                        self.ridge_gamma)
+            fused = fused + self.ridge_weight * ridge
+        else:
+            fused, best = search.log_votes(u, self.gamma)
         if vote_bias is not None:    # a class-size prior on the vote (-inf stays -inf)
             fused = fused + vote_bias.to(fused.device)
         if self.lda_wide and x is None:
@@ -164,13 +188,26 @@ class ExactSearch:
         return torch.from_numpy(kernels.bank_dots(rows, q.detach().float().numpy(), norms))
 
     def log_votes(self, u: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
+        logv, best, _ = self.ridge_log_votes(u, gamma)
+        return logv, best
+
+    def ridge_log_votes(self, u: torch.Tensor, gamma: float, coef: torch.Tensor | None = None,
+                        ridge_gamma: float = 0.0
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """`log_votes`, and the kernel ridge scores from the same cosines.
+
+        coef: (N, C) ridge coefficients (bank/ridge.py) -> third output (B, C); None: None.
+        """
+        from point_gn_ros.bank.ridge import ridge_scores
         step = max(1, _MAX_BLOCK // max(1, self.bank_u.shape[0]))
-        logv, best = [], []
+        logv, best, ridge = [], [], []
         for q in u.split(step):
             sims = self.similarities(q)
             logv.append(log_vote_shares(sims, self.bank_labels, self.num_classes, gamma))
             best.append(sims.max(dim=1).values)
-        return torch.cat(logv), torch.cat(best)
+            if coef is not None:
+                ridge.append(ridge_scores(sims, coef, ridge_gamma))
+        return torch.cat(logv), torch.cat(best), torch.cat(ridge) if ridge else None
 
 
 def _kernel_rows(bank_u: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None] | None:

@@ -17,6 +17,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from point_gn_ros.bank import ridge
 from point_gn_ros.bank.head import Head, fit_head
 # ScatterStats re-exported: bank_file.py and the scripts import it from here.
 from point_gn_ros.bank.lda import CovarianceFit, ScatterStats, lda_from_means  # noqa: F401
@@ -79,6 +80,10 @@ class RefitPolicy:
     lda_prior: LdaPrior = 'entries'
     vote_prior: float = 0.0
     lda_debias: float = 0.0
+    # A section with a kernel ridge term (bank/ridge.py) whose rows changed: 'off' serves the
+    # head without the term at once (its own CV temperature) and marks the full refit pending
+    # (bank/live.py runs it in the background); 'full' refits it here (seconds: offline use).
+    ridge: Literal['off', 'full'] = 'off'
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.vote_prior) and 0.0 <= self.vote_prior <= MAX_VOTE_PRIOR):
@@ -93,6 +98,8 @@ class RefitPolicy:
         if self.calibration not in ('keep', 'recalibrate', 'auto'):
             raise ValueError(f'calibration policy must be keep, recalibrate or auto, got '
                              f'{self.calibration!r}')
+        if self.ridge not in ('off', 'full'):
+            raise ValueError(f'ridge policy must be off or full, got {self.ridge!r}')
         if self.min_examples < 1 or self.folds < 2:
             raise ValueError('min_examples must be >= 1 and folds >= 2')
 
@@ -159,8 +166,10 @@ def active_view(bank: FeatureBank, min_examples: int) -> FeatureBank:
     if bank.views is not None:     # the same classes in the scan section (counted here)
         vkeep = ok[bank.views.labels]
         views = replace(bank.views, features=bank.views.features[vkeep],
-                        labels=bank.views.labels[vkeep])
-    return replace(bank, features=bank.features[keep], labels=bank.labels[keep], views=views)
+                        labels=bank.views.labels[vkeep],
+                        head=ridge.head_subset(bank.views.head, vkeep))
+    return replace(bank, features=bank.features[keep], labels=bank.labels[keep], views=views,
+                   head=ridge.head_subset(bank.head, keep))
 
 
 def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
@@ -239,8 +248,6 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
         new_head = replace(new_head, lda_bias=new_head.lda_bias + shift.float())
     if new_head is not None:
         new_head = _expand_lda(replace(new_head, gamma=gamma), present, bank.num_classes)
-        if new_head.is_plain_vote and new_head.temperature == 1.0:
-            new_head = None
     rewhiten = sel is not None and (
         (head is not None and head.whiten is not None)
         or (new_head is not None and new_head.whiten is not None))
@@ -248,6 +255,13 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
     if rewhiten:
         z_all = vote_to_z(bank.features, head)
         features = z_all if new_head is None else new_head.vote_space(z_all)
+    ridge_how = None
+    if head is not None and head.ridge_coef is not None:   # bank/ridge.py: knobs kept
+        new_head, features, ridge_how = ridge.refit(
+            head, new_head or Head(gamma), features, bank.labels, bank.num_classes, rewhiten,
+            str(meta.get('stored_dtype', 'float32')), policy.ridge, meta)
+    if new_head is not None and new_head.is_plain_vote and new_head.temperature == 1.0:
+        new_head = None
     cal_reason = _recalibrate(meta, bank, view, compact, present, gamma, new_head, sel, policy,
                               folds, z_view, groups)
     meta['refit'] = {'version': int(meta.get('bank_version', 0)), 'gamma': gamma,
@@ -258,7 +272,8 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                      'calibration_reason': cal_reason, 'min_examples': policy.min_examples,
                      'lda_prior': policy.lda_prior, 'vote_prior': policy.vote_prior,
                      'lda_debias': policy.lda_debias,
-                     'predicted_classes': int(len(present))}
+                     'predicted_classes': int(len(present)),
+                     **({} if ridge_how is None else {'ridge': ridge_how})}
     return replace(bank, features=features, gamma=gamma, meta=meta, head=new_head), rewhiten
 
 

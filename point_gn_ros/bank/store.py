@@ -18,6 +18,12 @@ Format version 2 (one `.npz`, read with allow_pickle=False, never unpickled):
                                            names, gamma, head (fusion weight, temperature,
                                            shrinkage, CV figures), calibration, provenance
 
+Format version 4 (only a bank whose head has a kernel ridge term, bank/ridge.py) adds
+  head_ridge_coef (N, C) float32           the ridge coefficients, one row per entry
+  head_whiten_triu (d(d+1)/2,) float32     instead of head_whiten when that is exactly
+                                           symmetric: its upper triangle, row-major
+and meta head.ridge (gamma, lambda, weight, CV table).
+
 Format version 3 adds, optionally (written as version 2 when it has neither):
   features      may be int8: each row scaled so its largest coordinate is +-127 (rows are
                 L2-normalised at load, so no scale is stored), or int4 (meta stored_dtype
@@ -54,12 +60,16 @@ from point_gn_ros.bank.head import Head
 from point_gn_ros.bank.quant import (_INTEGER_DTYPES, STORED_DTYPES, pack_int4,  # noqa: F401
                                      quantized, to_stored, unpack_int4)
 from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.head_file import head_from_arrays
 from point_gn_ros.bank.validate import check_bank_arrays
 
 FORMAT_VERSION = 3
 # Written as version 2 when a bank has no views section and no int8/int4 features (older
 # readers).
 PLAIN_VERSION = 2
+# Written when a section's head has a kernel ridge term (bank/ridge.py): older readers would
+# drop the term silently, so they refuse the file instead.
+RIDGE_VERSION = 4
 VIEWS_PREFIX = 'views_'
 # Older formats that still load (as the plain kernel vote).
 VOTE_ONLY_VERSIONS = (1,)
@@ -125,7 +135,8 @@ class FeatureBank:
         kind = ('plain kernel vote' if head.is_plain_vote else
                 f'{"whitened " if head.whiten is not None else ""}vote'
                 f'{f" + {head.fusion_weight:g} x LDA" if head.lda_coef is not None else ""}'
-                f'{" (every dim)" if head.lda_wide else ""}')
+                f'{" (every dim)" if head.lda_wide else ""}'
+                f'{f" + {head.ridge_weight:g} x kernel ridge" if head.has_ridge else ""}')
         return (f'{len(self)} entries, {self.num_classes} classes, dim {self.features.shape[1]} '
                 f'({self.meta.get("stored_dtype", "float32")}), {kind}, gamma {self.gamma:g}, '
                 f'T {head.temperature:.3g}, '
@@ -168,13 +179,27 @@ class FeatureBank:
         """
         meta = dict(self.meta)
         version = FORMAT_VERSION if dtype in _INTEGER_DTYPES or sectioned else PLAIN_VERSION
+        head = self.classifier_head
+        if head.has_ridge:
+            version = RIDGE_VERSION
         meta.update(format_version=version,
                     encoder_version=ENCODER_VERSION,
                     encoder_config=self.config.to_dict(), class_names=list(self.class_names),
                     gamma=float(self.gamma), stored_dtype=dtype)
-        head = self.classifier_head
         meta['head'] = {**meta.get('head', {}), 'fusion_weight': float(head.fusion_weight),
                         'temperature': float(head.temperature)}
+        if head.has_ridge:
+            fitted = meta['head'].get('ridge', {}).get('stored_dtype')
+            if fitted not in (None, dtype):
+                raise ValueError(f'the kernel ridge head was fitted on rows stored as {fitted}; '
+                                 f'saving them as {dtype} would round them again (rebuild '
+                                 f'with that dtype)')
+            meta['head']['ridge'] = {**meta['head'].get('ridge', {}),
+                                     'gamma': float(head.ridge_gamma),
+                                     'lambda': float(head.ridge_lambda),
+                                     'weight': float(head.ridge_weight)}
+        elif isinstance(meta['head'].get('ridge'), dict):
+            meta['head']['ridge'] = {**meta['head']['ridge'], 'weight': 0.0}
         arrays = {
             'features': to_stored(self.features, dtype),
             'labels': self.labels.cpu().numpy().astype(np.int32),
@@ -187,6 +212,14 @@ class FeatureBank:
                            strict=True):
             if t is not None:
                 arrays[name] = t.cpu().numpy().astype(np.float32)
+        w = arrays.get('head_whiten')
+        if version == RIDGE_VERSION and w is not None and np.array_equal(w, w.T):
+            # Format 4 keeps an exactly symmetric whitening as its upper triangle (half the
+            # bytes: the ridge coefficients' room under the shipped bank's 25 MB).
+            arrays['head_whiten_triu'] = w[np.triu_indices(len(w))]
+            del arrays['head_whiten']
+        if head.has_ridge:
+            arrays['head_ridge_coef'] = head.ridge_coef.cpu().numpy().astype(np.float32)
         if head.lda_wide:
             meta['head'].update(lda_wide=True, lda_trace=float(head.lda_trace))
             prec = head.lda_precision.cpu().numpy().astype(np.float32)
@@ -229,7 +262,7 @@ class FeatureBank:
         has_gate = any(k in a for k in GATE_ARRAYS)
         if not sub and not has_gate:
             return bank
-        if bank.meta.get('format_version') != FORMAT_VERSION:
+        if bank.meta.get('format_version') not in (FORMAT_VERSION, RIDGE_VERSION):
             raise BankError(f'{path}: views section or gate in a format '
                             f'{bank.meta.get("format_version")} bank')
         if not sub or not has_gate:
@@ -263,8 +296,9 @@ class FeatureBank:
                         'plain kernel vote (scores are vote shares, no novelty calibration); '
                         'rebuild it for calibrated probabilities: %s', path, version,
                         REBUILD_HINT)
-        elif version not in (PLAIN_VERSION, FORMAT_VERSION):
-            raise bad(f'format version {version!r} is not supported (expected {FORMAT_VERSION}; '
+        elif version not in (PLAIN_VERSION, FORMAT_VERSION, RIDGE_VERSION):
+            raise bad(f'format version {version!r} is not supported (expected {PLAIN_VERSION}-'
+                      f'{RIDGE_VERSION}; '
                       f'rebuild: {REBUILD_HINT})')
         if meta.get('encoder_version') != ENCODER_VERSION:
             raise bad(f'built by encoder version {meta.get("encoder_version")!r}, running '
@@ -314,8 +348,8 @@ class FeatureBank:
             raise bad('tf_scale must be positive')
         if not (np.isfinite(gamma) and gamma > 0):
             raise bad(f'gamma must be positive, got {gamma}')
-        head = None if version in VOTE_ONLY_VERSIONS else cls._head_from_arrays(
-            bad, a, meta, gamma, out_dim, len(class_names))
+        head = None if version in VOTE_ONLY_VERSIONS else head_from_arrays(
+            bad, a, meta, gamma, out_dim, len(class_names), len(labels), RIDGE_VERSION)
         tf = FeatureTransform(torch.from_numpy(mean.astype(np.float32)),
                               torch.from_numpy(scale.astype(np.float32)),
                               None if proj is None else torch.from_numpy(proj.astype(np.float32)))
@@ -325,52 +359,3 @@ class FeatureBank:
         return cls(features=features, labels=torch.from_numpy(labels.astype(np.int64)),
                    class_names=class_names, config=cfg, transform=tf, gamma=gamma, meta=meta,
                    path=path, head=head)
-
-    @staticmethod
-    def _head_from_arrays(bad, a: dict[str, np.ndarray], meta: dict[str, Any], gamma: float,
-                          dim: int, num_classes: int) -> Head:
-        """Validate and build the stored head (format 2); `bad` makes a BankError."""
-        hm = meta.get('head')
-        if not isinstance(hm, dict):
-            raise bad('metadata holds no head settings')
-        try:
-            weight, temp = float(hm['fusion_weight']), float(hm['temperature'])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise bad(f'incomplete head metadata ({exc})') from None
-        if not (np.isfinite(weight) and weight >= 0 and np.isfinite(temp) and temp > 0):
-            raise bad(f'head fusion weight {weight} / temperature {temp} out of range')
-        wide = bool(hm.get('lda_wide', False))
-        in_dim = len(a['tf_mean'])
-        shapes = {'head_whiten': (dim, dim),
-                  'head_lda_coef': (num_classes, in_dim if wide else dim),
-                  'head_lda_bias': (num_classes,)}
-        if wide:
-            shapes.update(head_lda_precision=(in_dim * (in_dim + 1) // 2,),
-                          head_lda_means=(num_classes, in_dim))
-        got = {}
-        for name, shape in shapes.items():
-            arr = a.get(name)
-            if arr is None:
-                continue
-            if arr.shape != shape or arr.dtype.kind != 'f' or not np.isfinite(arr).all():
-                raise bad(f'{name} must be finite floats of shape {shape}, got {arr.dtype} '
-                          f'{arr.shape}')
-            got[name] = torch.from_numpy(arr.astype(np.float32))
-        if ('head_lda_coef' in got) != ('head_lda_bias' in got):
-            raise bad('head_lda_coef and head_lda_bias come together')
-        if weight > 0 and 'head_lda_coef' not in got:
-            raise bad('head fusion weight > 0 but no LDA arrays')
-        precision = None
-        if wide:
-            if not {'head_lda_coef', 'head_lda_precision', 'head_lda_means'} <= set(got):
-                raise bad('a wide-LDA head needs head_lda_coef, _bias, _precision and _means')
-            precision = torch.zeros(in_dim, in_dim)
-            rows, cols = np.triu_indices(in_dim)
-            precision[rows, cols] = got['head_lda_precision']
-            precision[cols, rows] = got['head_lda_precision']
-        trace = float(hm.get('lda_trace') or 0.0)
-        if wide and not (np.isfinite(trace) and 0 <= trace <= 1e6):
-            raise bad(f'head lda_trace {trace} out of range')
-        return Head(gamma, got.get('head_whiten'), got.get('head_lda_coef'),
-                    got.get('head_lda_bias'), weight, temp, wide, precision,
-                    got.get('head_lda_means'), trace)

@@ -80,6 +80,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'instead of the PCA dims (bank/head.py; stores a D x D precision for '
                         'enrollment, 5.2 MB at 1,620 dims): none, scans (the --sections scan '
                         'section only) or all')
+    b.add_argument('--ridge', choices=('none', 'complete', 'all'), default='none',
+                   help='let CV also weigh a kernel ridge term in the head (bank/ridge.py; '
+                        'per-entry coefficients, an (N, N) solve at build, banks or sections '
+                        'of at most 16,000 entries): none, complete (the --sections complete '
+                        'section, or a bank without sections) or all')
     b.add_argument('--vote-only', action='store_true',
                    help="no discriminant head: the paper's plain kernel vote")
     b.add_argument('--false-reject-rate', type=float, default=0.05,
@@ -140,6 +145,7 @@ def _build(args: argparse.Namespace) -> int:
         source = groups if groups is not None else np.arange(len(ds))
         cv_subset = np.flatnonzero(source % args.cv_every == 0)
     common = dict(standardize_options=tuple(args.standardize), folds=args.folds,
+                  stored_dtype=args.dtype,
                   false_reject_rate=args.false_reject_rate, alphas=alphas,
                   weights=tuple(args.weights or DEFAULT_WEIGHTS))
     cache = Path(args.cache) if args.cache else None
@@ -148,7 +154,7 @@ def _build(args: argparse.Namespace) -> int:
     else:
         bank = build_bank(ds, cfg, args.device, dims_options=tuple(dims), cache_dir=cache,
                           groups=groups, cv_subset=cv_subset, wide_lda=args.wide_lda != 'none',
-                          **common)
+                          ridge=args.ridge != 'none', **common)
     if views_meta is not None:
         bank.meta['views'] = views_meta
     path = bank.save(args.output, dtype=args.dtype)
@@ -174,7 +180,8 @@ def _build_sections(ds, cfg, args: argparse.Namespace, dims: list,  # noqa: ANN0
     print(f'section 1, complete objects: {int((~scan).sum())} entries, CV on all of them')
     complete = build_bank(RowsDataset(ds, ~scan, 'complete'), cfg, args.device,
                           feats=feats[torch.from_numpy(~scan)], dims_options=tuple(dims),
-                          wide_lda=args.wide_lda == 'all', **common)
+                          wide_lda=args.wide_lda == 'all', ridge=args.ridge != 'none',
+                          **common)
     print('\n'.join(describe_selection(complete.meta)))
     sub = None if cv_subset is None else np.flatnonzero(np.isin(
         np.flatnonzero(scan), cv_subset))
@@ -183,7 +190,7 @@ def _build_sections(ds, cfg, args: argparse.Namespace, dims: list,  # noqa: ANN0
     views = build_bank(RowsDataset(ds, scan, 'scans'), cfg, args.device,
                        feats=feats[torch.from_numpy(scan)], dims_options=tuple(views_dims),
                        groups=np.asarray(ds.groups)[scan], cv_subset=sub,
-                       wide_lda=args.wide_lda != 'none', **common)
+                       wide_lda=args.wide_lda != 'none', ridge=args.ridge == 'all', **common)
     print('\n'.join(describe_selection(views.meta)))
     return combine_sections(complete, views, feats, scan)
 
@@ -254,6 +261,12 @@ def describe_selection(meta: dict) -> list[str]:
         lines.append(f'  head: kernel vote on {space} features + {lda}; temperature '
                      f'{head.get("temperature", 1):.3g}'
                      + (f', CV log-loss {loss:.3f}' if loss is not None else ''))
+        ridge = head.get('ridge')
+        if ridge and ridge.get('weight'):
+            lines.append(f'  + {ridge["weight"]:g} x kernel ridge scores (kernel gamma '
+                         f'{ridge["gamma"]:g}, lambda {ridge["lambda"]:g}; bank/ridge.py)')
+        elif ridge:
+            lines.append('  kernel ridge term weighed by CV, not kept (no held-out gain)')
         vote = head.get('vote_cv_accuracy')
         if vote is not None:
             lines.append(f'  plain kernel vote on the same folds: CV accuracy {100 * vote:.2f} %')

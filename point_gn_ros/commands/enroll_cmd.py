@@ -85,7 +85,8 @@ def _policy(args: argparse.Namespace):
     return RefitPolicy(gamma=args.gamma, calibration=args.calibration,
                        min_examples=args.min_examples, folds=args.folds,
                        lda_prior=args.lda_prior, vote_prior=getattr(args, 'vote_prior', 0.0),
-                       lda_debias=getattr(args, 'lda_debias', 0.0))
+                       lda_debias=getattr(args, 'lda_debias', 0.0),
+                       ridge='full')   # offline: a kernel ridge term is refitted in full
 
 
 def _share(text: str) -> float:

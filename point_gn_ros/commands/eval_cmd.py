@@ -46,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'novelty AUROC (unseen vs known), known accuracy and unknown recall '
                         "at the bank's default threshold")
     e.add_argument('--open-set-seed', type=int, default=0, help='seed of the known classes')
+    e.add_argument('--ridge', action='store_true',
+                   help='--open-set: let CV also weigh a kernel ridge term in the bank it '
+                        'builds (bank build --ridge)')
     e.set_defaults(func=_eval)
 
     f = sub.add_parser('fewshot', help='N-way K-shot episodes (default: the paper settings)')
@@ -147,8 +150,8 @@ def _eval_open_set(args: argparse.Namespace) -> int:
                                  cache_dir=cache)
         sub = KnownSubset(train, known)
         bank = build_bank(sub, encoder=enc, feats=f_train[torch.from_numpy(sub.index)],
-                          progress=not args.json)
-        bank.save(args.bank)
+                          progress=not args.json, ridge=args.ridge)
+        bank.save(args.bank, dtype='float32' if args.ridge else 'float16')
     feats = encode_dataset(ds, enc, args.batch_size, progress=not args.json, cache_dir=cache)
     clf = Classifier(bank, args.device, unknown_threshold=-1)
     res = clf.classify(torch.as_tensor(feats), top_k=1)

@@ -150,7 +150,8 @@ class Enrollment(ManagedEntity):
             # search index's basis is reused, not fitted again (~0.4 s of start-up CPU).
             self.live = LiveBank(BankFile.of_loaded(node.recognizer.bank),
                                  lambda bank: self._make_model(bank, node.recognizer), policy,
-                                 derive=self._make_model)
+                                 derive=self._make_model,
+                                 on_refit=lambda snap: node.replace_recognizer(snap.model))
             node.replace_recognizer(self.live.current().model)
         except (PointGNError, ValueError) as exc:
             log.error(f'enrollment: {exc}')
