@@ -38,6 +38,7 @@ import torch
 
 # The LDA's algebra lives in bank/lda.py (CovarianceFit re-exported for the head's users).
 from point_gn_ros.bank.lda import CovarianceFit
+from point_gn_ros.bank.ridge import ridge_scores
 
 # Upper bound on queries x bank entries held at once (float32 similarity block).
 _MAX_BLOCK = 1 << 24
@@ -198,7 +199,6 @@ class ExactSearch:
 
         coef: (N, C) ridge coefficients (bank/ridge.py) -> third output (B, C); None: None.
         """
-        from point_gn_ros.bank.ridge import ridge_scores
         step = max(1, _MAX_BLOCK // max(1, self.bank_u.shape[0]))
         logv, best, ridge = [], [], []
         for q in u.split(step):

@@ -134,7 +134,12 @@ class LiveBank(Generic[Model]):
             snap = self._snap
             if not _pending(snap.file):
                 return
-            fitted = refit_ridge_sections(snap.file)
+            try:
+                fitted = refit_ridge_sections(snap.file)
+            except Exception as exc:  # noqa: BLE001 - the bank keeps answering without it
+                log.error('bank version %d: ridge refit failed, the term stays off: %s',
+                          snap.version, exc)
+                return
             with self._lock:
                 if self._snap is snap:
                     self._snap = published = self._snapshot(fitted, snap)

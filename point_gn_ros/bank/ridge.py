@@ -27,11 +27,14 @@ the result as the next version). A removal does the same.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+
+from point_gn_ros.bank.quant import quantized
 
 if TYPE_CHECKING:
     from point_gn_ros.bank.head import Head
@@ -97,24 +100,20 @@ def cv_scores(u_train: torch.Tensor, u_val: torch.Tensor, labels: torch.Tensor,
 
 def stored_rows(rows: torch.Tensor, dtype: str) -> torch.Tensor:
     """Unit rows (N, d) as a bank file of `dtype` gives them back (bank/quant.py, load)."""
-    from point_gn_ros.bank.quant import quantized
     return torch.nn.functional.normalize(
         torch.from_numpy(quantized(rows, dtype).astype(np.float32)), dim=1)
 
 
-def head_subset(head: 'Head | None', keep: torch.Tensor | np.ndarray,
-                drop_class: int | None = None) -> 'Head | None':
+def head_subset(head: 'Head | None', keep: torch.Tensor | np.ndarray) -> 'Head | None':
     """The head with the ridge coefficients of the kept rows (bool (N,)) only.
 
-    drop_class: a removed class, whose column goes too. Heads without a ridge: as they are.
+    Heads without a ridge: as they are.
     """
     if head is None or head.ridge_coef is None:
         return head
     # Rows appended by an enrollment not yet refitted have no coefficients: only the first.
-    coef = head.ridge_coef[torch.as_tensor(keep, dtype=torch.bool)[:len(head.ridge_coef)]]
-    if drop_class is not None:
-        coef = torch.cat([coef[:, :drop_class], coef[:, drop_class + 1:]], dim=1)
-    return replace(head, ridge_coef=coef)
+    return replace(head, ridge_coef=head.ridge_coef[
+        torch.as_tensor(keep, dtype=torch.bool)[:len(head.ridge_coef)]])
 
 
 def refit(head: 'Head', new_head: 'Head', rows: torch.Tensor, labels: torch.Tensor,
@@ -135,7 +134,8 @@ def refit(head: 'Head', new_head: 'Head', rows: torch.Tensor, labels: torch.Tens
         return kept, rows, 'kept'
     settings = meta.setdefault('head', {}).setdefault('ridge', {})
     if mode == 'full':
-        rows = stored_rows(rows, dtype)
+        if moved:    # re-whitened rows: as the file will store them (appended ones already are)
+            rows = stored_rows(rows, dtype)
         settings['pending'] = False
         return replace(new_head, ridge_coef=fit(rows, labels, num_classes, head.ridge_gamma,
                                                 head.ridge_lambda),
@@ -163,7 +163,6 @@ def refit_pending(bank: 'FeatureBank') -> 'FeatureBank':
     """
     if not is_pending(bank.meta) or bank.head is None:
         return bank
-    import copy
     meta = copy.deepcopy(bank.meta)
     settings = meta['head']['ridge']
     g, lam, w = (float(settings[k]) for k in ('gamma', 'lambda', 'weight_pending'))
