@@ -65,12 +65,14 @@ fuzz: $(STAMP) $(WITH_EXTRAS)
 #   sparse clouds (every scan) filled up to 1024 points with midpoints of neighbouring points
 #   (--upsample midpoint, chosen over repeated points by grouped CV: BENCHMARKS.md);
 #   the scan section's LDA may read every standardised dim (--wide-lda scans; CV chose it).
-# 23.5 MB. ~15 min on 2 cores the first time (encoding 88,587 clouds); CACHE=DIR reuses them.
+#   fitted matrices (PCA, whitening, wide-LDA precision) float16 (--matrix-dtype; bank/half.py).
+# 19.1 MB. ~15 min on 2 cores the first time (encoding 88,587 clouds); CACHE=DIR reuses them.
 CACHE ?=
 default-bank: $(STAMP)
 	$(VENV)/bin/point_gn bank build $(MODELNET) --split train --default-bank --yaw-align \
 		--upsample midpoint --views 8 --sections --dtype int4 --dims 512 640 --views-dims 224 320 \
 		--alphas 0.1 --weights 0.1 0.2 0.3 --cv-every 9 --wide-lda scans --ridge complete \
+		--matrix-dtype float16 \
 		$(if $(CACHE),--cache $(CACHE)) -o point_gn_ros/data/modelnet40_default.npz
 
 # The one-head sensor-realistic bank (not shipped since the two-section default bank holds the

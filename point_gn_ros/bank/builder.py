@@ -14,6 +14,7 @@ import torch
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.bank.transform import FeatureTransform, Standardize
+from point_gn_ros.bank.half import MatrixDtype, rounded, rounded_head
 from point_gn_ros.bank.head import Head, fit_head
 from point_gn_ros.bank.selection import (DEFAULT_ALPHAS, DEFAULT_GAMMAS, DEFAULT_LDA_ALPHAS,
                                          DEFAULT_WEIGHTS, Selection, calibrate_novelty,
@@ -56,19 +57,23 @@ def feature_cache_path(dataset, cfg: EncoderConfig, cache_dir: Path | str) -> Pa
 
 
 def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel: Selection,
-                 stored_dtype: str = 'float32') -> tuple[FeatureTransform, Head, torch.Tensor]:
+                 stored_dtype: str = 'float32', matrix_dtype: MatrixDtype = 'float32'
+                 ) -> tuple[FeatureTransform, Head, torch.Tensor]:
     """Fit the CV-chosen transform and head on all of feats (N, D).
 
     -> transform, head, bank rows in the vote's space (N, d) float32. With a kernel ridge
     term (sel.ridge_weight > 0) the rows come back as the file will store them in
     `stored_dtype` (int4 rounding would otherwise undo the ridge fit: bank/ridge.py).
+    matrix_dtype: the projection, whitening and wide-LDA precision are rounded as a file
+    of that matrix dtype stores them (bank/half.py) before anything is computed with them.
     """
-    tf = FeatureTransform.fit(feats, sel.standardize, sel.dims)
+    tf, _ = rounded(FeatureTransform.fit(feats, sel.standardize, sel.dims), None, matrix_dtype)
     z = tf(feats)
     lab = torch.as_tensor(np.asarray(labels), dtype=torch.int64)
-    head = fit_head(z, lab, num_classes, sel.gamma, sel.alpha, sel.lda_alpha,
-                    sel.fusion_weight, sel.temperature,
-                    x=tf.standardized(feats) if sel.lda_wide else None)
+    head = rounded_head(fit_head(z, lab, num_classes, sel.gamma, sel.alpha, sel.lda_alpha,
+                                 sel.fusion_weight, sel.temperature,
+                                 x=tf.standardized(feats) if sel.lda_wide else None),
+                        matrix_dtype)
     rows = head.vote_space(z)
     if sel.ridge_weight > 0:
         from point_gn_ros.bank import ridge
@@ -92,7 +97,8 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                weights: tuple[float, ...] = DEFAULT_WEIGHTS,
                lda_alphas: tuple[float, ...] = DEFAULT_LDA_ALPHAS,
                cv_subset: np.ndarray | None = None, wide_lda: bool = False,
-               ridge: bool = False, stored_dtype: str = 'float32') -> FeatureBank:
+               ridge: bool = False, stored_dtype: str = 'float32',
+               matrix_dtype: MatrixDtype = 'float32') -> FeatureBank:
     """Encode `dataset`, choose transform and head by k-fold CV on it, return the bank.
 
     groups: (N,) int or None; entries sharing a group (an object and its simulated views)
@@ -102,6 +108,8 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
     wide_lda: CV also weighs an LDA on every standardised encoder dim (bank/head.py).
     ridge: CV also weighs a kernel ridge term (bank/ridge.py), fitted on the rows as a file
     of `stored_dtype` holds them (save the bank with that dtype).
+    matrix_dtype: 'float16' stores the large fitted matrices as float16 (format 5,
+    bank/half.py): about half the file of a wide-LDA or PCA bank.
     """
     encoder = encoder or make_encoder(cfg, device)
     if feats is None:
@@ -113,7 +121,7 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                  groups=None if groups is None else np.asarray(groups)[cv], alphas=alphas,
                  weights=weights, lda_alphas=lda_alphas, wide_lda=wide_lda, ridge=ridge)
     tf, head, vote_feats = fit_selected(feats, labels, len(dataset.class_names), sel,
-                                        stored_dtype)
+                                        stored_dtype, matrix_dtype)
     counts = Counter(labels.tolist())
     meta = {
         'provenance': {
@@ -133,6 +141,8 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
                                'wide_lda': bool(wide_lda), 'ridge': bool(ridge)}},
         'head': sel.head_meta(),
     }
+    if matrix_dtype != 'float32':
+        meta['matrix_dtype'] = matrix_dtype
     if head.has_ridge:   # fitted on rows rounded as this dtype stores them (store.py checks)
         meta['head']['ridge']['stored_dtype'] = stored_dtype
     if sel.heldout_novelty is not None:

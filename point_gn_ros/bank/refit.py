@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank import ridge
+from point_gn_ros.bank.half import rounded_head
 from point_gn_ros.bank.head import Head, fit_head
 # ScatterStats re-exported: bank_file.py and the scripts import it from here.
 from point_gn_ros.bank.lda import CovarianceFit, ScatterStats, lda_from_means  # noqa: F401
@@ -212,8 +213,9 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                      weights=tuple(grid.get('weights') or (0.0,)), groups=groups)
         gamma, gamma_reason = float(sel.gamma), (
             f'{sel.folds_used}-fold CV on the bank: {100 * sel.cv_accuracy:.1f} %')
-        new_head = fit_head(z_view, compact, len(present), sel.gamma, sel.alpha, sel.lda_alpha,
-                            sel.fusion_weight, sel.temperature)
+        new_head = rounded_head(fit_head(z_view, compact, len(present), sel.gamma, sel.alpha,
+                                         sel.lda_alpha, sel.fusion_weight, sel.temperature),
+                                meta.get('matrix_dtype', 'float32'))
         meta['head'] = {**meta.get('head', {}), **sel.head_meta()}
     else:
         if want_cv:

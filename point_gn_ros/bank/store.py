@@ -24,6 +24,10 @@ Format version 4 (only a bank whose head has a kernel ridge term, bank/ridge.py)
                                            symmetric: its upper triangle, row-major
 and meta head.ridge (gamma, lambda, weight, CV table).
 
+Format version 5 (a section whose meta `matrix_dtype` is 'float16', bank/half.py) stores
+tf_projection, head_whiten / head_whiten_triu and head_lda_precision as float16 values
+m / 2^e, e per array in meta `matrix_scale_log2`; otherwise as version 4.
+
 Format version 3 adds, optionally (written as version 2 when it has neither):
   features      may be int8: each row scaled so its largest coordinate is +-127 (rows are
                 L2-normalised at load, so no scale is stored), or int4 (meta stored_dtype
@@ -60,7 +64,8 @@ from point_gn_ros.bank.head import Head
 from point_gn_ros.bank.quant import (_INTEGER_DTYPES, STORED_DTYPES, pack_int4,  # noqa: F401
                                      quantized, to_stored, unpack_int4)
 from point_gn_ros.bank.transform import FeatureTransform
-from point_gn_ros.bank.head_file import head_from_arrays
+from point_gn_ros.bank.half import HALF_MATRICES, encode
+from point_gn_ros.bank.head_file import decoded_matrices, head_from_arrays
 from point_gn_ros.bank.validate import check_bank_arrays
 
 FORMAT_VERSION = 3
@@ -70,6 +75,10 @@ PLAIN_VERSION = 2
 # Written when a section's head has a kernel ridge term (bank/ridge.py): older readers would
 # drop the term silently, so they refuse the file instead.
 RIDGE_VERSION = 4
+# Written when a section stores its large matrices as scaled float16 (bank/half.py): older
+# readers would take the scaled values as they are.
+HALF_VERSION = 5
+SECTIONED_VERSIONS = (FORMAT_VERSION, RIDGE_VERSION, HALF_VERSION)
 VIEWS_PREFIX = 'views_'
 # Older formats that still load (as the plain kernel vote).
 VOTE_ONLY_VERSIONS = (1,)
@@ -182,6 +191,9 @@ class FeatureBank:
         head = self.classifier_head
         if head.has_ridge:
             version = RIDGE_VERSION
+        half = meta.get('matrix_dtype') == 'float16'
+        if half:
+            version = HALF_VERSION
         meta.update(format_version=version,
                     encoder_version=ENCODER_VERSION,
                     encoder_config=self.config.to_dict(), class_names=list(self.class_names),
@@ -213,7 +225,7 @@ class FeatureBank:
             if t is not None:
                 arrays[name] = t.cpu().numpy().astype(np.float32)
         w = arrays.get('head_whiten')
-        if version == RIDGE_VERSION and w is not None and np.array_equal(w, w.T):
+        if version >= RIDGE_VERSION and w is not None and np.array_equal(w, w.T):
             # Format 4 keeps an exactly symmetric whitening as its upper triangle (half the
             # bytes: the ridge coefficients' room under the shipped bank's 25 MB).
             arrays['head_whiten_triu'] = w[np.triu_indices(len(w))]
@@ -225,6 +237,14 @@ class FeatureBank:
             prec = head.lda_precision.cpu().numpy().astype(np.float32)
             arrays['head_lda_precision'] = prec[np.triu_indices(len(prec))]
             arrays['head_lda_means'] = head.lda_means.cpu().numpy().astype(np.float32)
+        if half:
+            scales = {}
+            for name in HALF_MATRICES:
+                if name in arrays:
+                    arrays[name], scales[name] = encode(arrays[name])
+            meta['matrix_scale_log2'] = scales
+        else:
+            meta.pop('matrix_scale_log2', None)
         arrays['meta'] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
         return arrays
 
@@ -262,7 +282,7 @@ class FeatureBank:
         has_gate = any(k in a for k in GATE_ARRAYS)
         if not sub and not has_gate:
             return bank
-        if bank.meta.get('format_version') not in (FORMAT_VERSION, RIDGE_VERSION):
+        if bank.meta.get('format_version') not in SECTIONED_VERSIONS:
             raise BankError(f'{path}: views section or gate in a format '
                             f'{bank.meta.get("format_version")} bank')
         if not sub or not has_gate:
@@ -296,9 +316,9 @@ class FeatureBank:
                         'plain kernel vote (scores are vote shares, no novelty calibration); '
                         'rebuild it for calibrated probabilities: %s', path, version,
                         REBUILD_HINT)
-        elif version not in (PLAIN_VERSION, FORMAT_VERSION, RIDGE_VERSION):
+        elif version not in (PLAIN_VERSION, *SECTIONED_VERSIONS):
             raise bad(f'format version {version!r} is not supported (expected {PLAIN_VERSION}-'
-                      f'{RIDGE_VERSION}; '
+                      f'{HALF_VERSION}; '
                       f'rebuild: {REBUILD_HINT})')
         if meta.get('encoder_version') != ENCODER_VERSION:
             raise bad(f'built by encoder version {meta.get("encoder_version")!r}, running '
@@ -309,6 +329,7 @@ class FeatureBank:
             gamma = float(meta['gamma'])
         except (KeyError, TypeError, ValueError) as exc:
             raise bad(f'incomplete metadata ({exc})') from None
+        a = decoded_matrices(bad, a, meta, version == HALF_VERSION)
         feats, labels = a['features'], a['labels']
         mean, scale = a['tf_mean'], a['tf_scale']
         proj = a.get('tf_projection')

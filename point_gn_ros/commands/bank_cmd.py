@@ -55,6 +55,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='stored feature precision (default float16; int8: a quarter of '
                         'float32, cosines within ~1e-3; int4: an eighth, cosines off by ~1e-2 '
                         'on average, no loss measured by CV on scans: BENCHMARKS.md)')
+    b.add_argument('--matrix-dtype', choices=('float32', 'float16'), default='float32',
+                   help='precision of the fitted PCA projection, whitening and wide-LDA '
+                        'precision (float16: about half their bytes; the fit uses the rounded '
+                        'values; format 5, which older readers refuse: bank/half.py)')
     b.add_argument('--sections', action='store_true',
                    help='with --views: keep complete objects and scans as two sections, each '
                         'with its own knobs chosen by CV (complete: --dims; scans: '
@@ -145,7 +149,7 @@ def _build(args: argparse.Namespace) -> int:
         source = groups if groups is not None else np.arange(len(ds))
         cv_subset = np.flatnonzero(source % args.cv_every == 0)
     common = dict(standardize_options=tuple(args.standardize), folds=args.folds,
-                  stored_dtype=args.dtype,
+                  stored_dtype=args.dtype, matrix_dtype=args.matrix_dtype,
                   false_reject_rate=args.false_reject_rate, alphas=alphas,
                   weights=tuple(args.weights or DEFAULT_WEIGHTS))
     cache = Path(args.cache) if args.cache else None
@@ -231,7 +235,7 @@ def _report_input(ds, cfg, args: argparse.Namespace, dims: list) -> None:  # noq
               file=sys.stderr)
     c = cfg.to_dict()
     print('settings: ' + ' '.join(f'{k}={v}' for k, v in c.items())
-          + f' dtype={args.dtype} folds={args.folds}'
+          + f' dtype={args.dtype} matrix_dtype={args.matrix_dtype} folds={args.folds}'
           + f' dims={[d or "all" for d in dims]} standardize={list(args.standardize)}'
           + f' false_reject_rate={args.false_reject_rate:g}')
 
@@ -243,6 +247,8 @@ def describe_selection(meta: dict) -> list[str]:
     """Lines describing a bank's CV choices, head and calibration (build and info)."""
     lines = []
     sel, head = meta.get('selection', {}), meta.get('head', {})
+    if meta.get('matrix_dtype', 'float32') != 'float32':
+        lines.append(f'  fitted matrices stored as {meta["matrix_dtype"]} (bank/half.py)')
     if sel:
         lines.append(f'  transform: standardize={sel.get("standardize")} '
                      f'dims={sel.get("dims") or "all"}; gamma={sel.get("gamma"):g}; '
