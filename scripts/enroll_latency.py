@@ -14,7 +14,7 @@ errors from the node's diagnostics.
 
 Run: python scripts/enroll_latency.py [--bank PATH] [--rate 30] [--examples 20] [--seconds 6]
      [--search auto|exact|indexed] [--augment d4] [--vote-prior BETA] [--lda-prior balanced]
-     [--lda-debias F]
+     [--lda-debias F] [--steal-budget RHO]
 (needs the shared ModelNet40 data; ROS_DOMAIN_ID honoured via test/node_testing.py).
 """
 
@@ -52,6 +52,8 @@ def main(argv: list[str] | None = None) -> int:
                    help='node parameter enroll_lda_prior')
     p.add_argument('--lda-debias', type=float, default=0.0,
                    help='node parameter enroll_lda_debias (wide-LDA banks)')
+    p.add_argument('--steal-budget', type=float, default=0.0,
+                   help='node parameter enroll_steal_budget (bank/debias.py)')
     p.add_argument('--json', default=None)
     args = p.parse_args(argv)
 
@@ -72,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
                         'enroll_augment': args.augment,
                         'enroll_vote_prior': float(args.vote_prior),
                         'enroll_lda_prior': args.lda_prior,
-                        'enroll_lda_debias': float(args.lda_debias)}, log)
+                        'enroll_lda_debias': float(args.lda_debias),
+                        'enroll_steal_budget': float(args.steal_budget)}, log)
     h = Harness('enroll_latency')
     try:
         pub = h.node.create_publisher(PointCloud2, 'objects', reliable_qos(400))

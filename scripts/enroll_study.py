@@ -19,7 +19,7 @@ Nothing here is tuned on the test split: the bank's knobs were chosen by CV on t
 
 Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR]
      [--augment none|mirror|rot4|d4] [--view-protocol hpr|zbuffer] [--lda-prior balanced]
-     [--vote-prior BETA] [--lda-debias F]
+     [--vote-prior BETA] [--lda-debias F] [--steal-budget RHO]
      [--cv-augment]
 """
 
@@ -67,6 +67,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--lda-debias', type=float, default=0.0, metavar='F',
                    help="share of a wide LDA's mean-noise correction for the enrolled classes "
                         '(RefitPolicy.lda_debias; chosen by scripts/instance_cv.py --debias)')
+    p.add_argument('--steal-budget', type=float, default=0.0, metavar='RHO',
+                   help='RefitPolicy.lda_steal_budget (bank/debias.py; chosen by '
+                        'scripts/instance_cv.py --budgets)')
     p.add_argument('--cv-augment', action='store_true',
                    help='also choose --augment by leave-one-scan-out CV on the enrolled scans '
                         'alone (no query scan read): accuracy per option')
@@ -125,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f'encoded {len(rest)} test objects twice in {time.perf_counter() - t0:.0f} s',
           file=sys.stderr)
     policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior, vote_prior=args.vote_prior,
-                         lda_debias=args.lda_debias)
+                         lda_debias=args.lda_debias, lda_steal_budget=args.steal_budget)
     cv = None
     if args.cv_augment:
         scans = {f'{c}_object_{i}': enrollment_scans(i) for c, i in chosen.items()}
@@ -175,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         'augment': args.augment, 'view_protocol': args.view_protocol,
         'lda_prior': args.lda_prior, 'vote_prior': args.vote_prior,
         'lda_debias': args.lda_debias,
+        'lda_steal_budget': args.steal_budget,
         'refit': snap.bank.meta['refit'], 'objects': chosen,
         'new_objects_accuracy': float((q_pred == q_true).mean()),
         'new_objects_misses_to_another_new_class': float(

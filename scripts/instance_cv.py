@@ -37,6 +37,7 @@ import torch
 from point_gn_ros.bank import ridge
 from point_gn_ros.bank.builder import feature_cache_path
 from point_gn_ros.bank.classifier import Classifier
+from point_gn_ros.bank.debias import taught_shares
 from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, refit
 from point_gn_ros.bank.live import refit_ridge_sections
 from point_gn_ros.bank.vote_prior import META_KEY
@@ -112,30 +113,32 @@ def with_beta(bf: BankFile, beta: float, names: list[str], scope: str) -> BankFi
                     views=BankFile(views, bf.views.stored))
 
 
-def with_debias(bf: BankFile, f: float, names: list[str]) -> BankFile:
+def with_debias(bf: BankFile, f: float, names: list[str], budget: float = 0.0) -> BankFile:
     """Both sections with f x the mean-noise correction on the LDA bias of `names`.
 
-    (wide-LDA sections only; t = the head's lda_trace, bank/lda.py): bias_c += f t / (2 n_c).
+    (wide-LDA sections only; t = the head's lda_trace, bank/lda.py): bias_c += f_c t / (2 n_c),
+    f_c = f, or with a steal budget > 0 the share bank/debias.py gives class c (cap f), as
+    RefitPolicy(lda_debias=f, lda_steal_budget=budget) would.
     """
     def put(bank):  # noqa: ANN001, ANN202
         head = bank.head
         if f == 0 or head is None or not head.lda_wide:
             return bank
-        t = head.lda_trace
         n = torch.bincount(bank.labels, minlength=bank.num_classes).double()
-        bias = head.lda_bias.clone()
-        for name in names:
-            c = bank.class_names.index(name)
-            bias[c] += float(f * t / (2 * n[c]))
+        taught = torch.tensor([c in names for c in bank.class_names])
+        shares = taught_shares(head.lda_means, head.lda_coef, head.lda_bias,
+                               head.lda_precision, float(bank.meta['head']['lda_alpha']),
+                               head.lda_trace, n, taught, f, budget)
+        bias = head.lda_bias + (shares * head.lda_trace / (2 * n)).float()
         return replace(bank, head=replace(head, lda_bias=bias))
     views = put(bf.bank.views)
     return BankFile(replace(put(bf.bank), views=views), bf.stored,
                     views=BankFile(views, bf.views.stored))
 
 
-def key(g: tuple[float, float]) -> str:
-    """Table key of (beta, debias): 'b=1.2' without the correction, else 'b=1.2,f=0.5'."""
-    return f'b={g[0]:g}' + (f',f={g[1]:g}' if g[1] else '')
+def key(g: tuple[float, float, float]) -> str:
+    """Table key of (beta, debias, budget): 'b=1.2', 'b=1.2,f=0.5' or 'b=1.2,f=1.5,rho=0.002'."""
+    return f'b={g[0]:g}' + (f',f={g[1]:g}' if g[1] else '') + (f',rho={g[2]:g}' if g[2] else '')
 
 
 def predict(bf: BankFile, feats: torch.Tensor) -> np.ndarray:
@@ -194,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--debias', type=float, nargs='+', default=[0.0],
                    help='fractions f of the wide LDA mean-noise correction of enrolled classes '
                         '(bank/lda.py lda_noise_trace), each crossed with every beta')
+    p.add_argument('--budgets', type=float, nargs='+', default=[0.0],
+                   help='steal budgets rho (RefitPolicy.lda_steal_budget, bank/debias.py; 0 = '
+                        'the uniform share), each crossed with every debias share (the cap)')
     p.add_argument('--other-scans', choices=('bank', 'random'), default='bank',
                    help="existing-class scans: the bank's own scans of each held-out object, "
                         "or one scan from a random viewpoint (enroll_study's existing-class "
@@ -216,7 +222,8 @@ def main(argv: list[str] | None = None) -> int:
         bf.views.bank.labels.numpy(), np.repeat(labels, views)), 'feature cache / bank mismatch'
     policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior)
     encoder = make_encoder(bf.bank.config)
-    grid = [(b, f) for f in args.debias for b in args.betas]
+    grid = [(b, f, rho) for rho in args.budgets for f in args.debias for b in args.betas
+            if not (rho and not f)]
     res = {g: {'inst': [], 'complete': [], 'scan': []} for g in grid}
     for r in range(args.rounds):
         rng = np.random.default_rng(100 + r)
@@ -247,12 +254,12 @@ def main(argv: list[str] | None = None) -> int:
         # background refit does (bank/live.py): the state the robot keeps.
         cur = refit_ridge_sections(cur)
         q_inst, q_ids = torch.cat(query), np.asarray(q_ids)
-        for b, fd in grid:
-            bb = with_beta(with_debias(cur, fd, names), b, names, args.scope)
-            res[b, fd]['inst'].append(float((predict(bb, q_inst) == q_ids).mean()))
+        for b, fd, rho in grid:
+            bb = with_beta(with_debias(cur, fd, names, rho), b, names, args.scope)
+            res[b, fd, rho]['inst'].append(float((predict(bb, q_inst) == q_ids).mean()))
             for kind, q, t in (('complete', q_full, t_full), ('scan', q_scan, t_scan)):
                 now = predict(bb, q) == t
-                res[b, fd][kind].append(100 * float((right0[kind] & ~now).mean()
+                res[b, fd, rho][kind].append(100 * float((right0[kind] & ~now).mean()
                                                     - (~right0[kind] & now).mean()))
         print(f'round {r}: ' + ', '.join(
             f'{key(g)} inst {res[g]["inst"][-1]:.3f} drop {res[g]["complete"][-1]:.2f}/'
@@ -262,12 +269,12 @@ def main(argv: list[str] | None = None) -> int:
                       'drop_scan_points': float(np.mean(v['scan']))} for g, v in res.items()}
     ok = [g for g in grid if table[key(g)]['drop_complete_points'] <= args.max_drop
           and table[key(g)]['drop_scan_points'] <= args.max_drop]
-    chosen = max(ok, key=lambda g: (table[key(g)]['instance_accuracy'], -g[0], -g[1])) \
-        if ok else (0.0, 0.0)
+    chosen = max(ok, key=lambda g: (table[key(g)]['instance_accuracy'], -g[0], -g[1], g[2])) \
+        if ok else (0.0, 0.0, 0.0)
     out = {'rounds': args.rounds, 'others': args.others, 'scope': args.scope,
            'other_scans': args.other_scans,
            'lda_prior': args.lda_prior, 'max_drop': args.max_drop, 'table': table,
-           'chosen_beta': chosen[0], 'chosen_debias': chosen[1]}
+           'chosen_beta': chosen[0], 'chosen_debias': chosen[1], 'chosen_budget': chosen[2]}
     print(json.dumps(out, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2) + '\n')

@@ -90,10 +90,17 @@ def test_add_with_vote_prior_records_it(small_bank_path: Path, tmp_path: Path,
     assert main(['bank', 'add', str(small_bank_path), str(tmp_path / 'scan.npy'), '--class',
                  'toolbox', '--lda-debias', '0.5', '-o', str(out)]) == 0
     assert BankFile.load(out).bank.meta['refit']['lda_debias'] == 0.5
-    with pytest.raises(SystemExit):       # out of [0, 1]
+    with pytest.raises(SystemExit):       # out of [0, 2]
         main(['bank', 'add', str(out), str(tmp_path / 'scan.npy'), '--class', 'x',
-              '--lda-debias', '2'])
-    assert 'must be in [0, 1]' in capsys.readouterr().err
+              '--lda-debias', '2.5'])
+    assert 'must be in [0, 2]' in capsys.readouterr().err
+    assert main(['bank', 'add', str(small_bank_path), str(tmp_path / 'scan.npy'), '--class',
+                 'toolbox', '--lda-debias', '2', '--steal-budget', '0.001', '-o', str(out)]) == 0
+    assert BankFile.load(out).bank.meta['refit']['lda_steal_budget'] == 0.001
+    with pytest.raises(SystemExit):       # out of [0, 0.5]
+        main(['bank', 'add', str(out), str(tmp_path / 'scan.npy'), '--class', 'x',
+              '--steal-budget', '0.7'])
+    assert 'must be in [0, 0.5]' in capsys.readouterr().err
 
 
 def test_errors_are_one_line(small_bank_path: Path, tmp_path: Path,

@@ -147,4 +147,31 @@ def test_debias_lifts_only_the_taught_class_by_the_mean_noise(wide) -> None:  # 
     assert torch.allclose(lift[:CLASSES], torch.zeros(CLASSES))          # built: untouched
     assert abs(float(lift[CLASSES]) - 0.5 * head.lda_trace / (2 * 5)) < 1e-3 * head.lda_trace
     with pytest.raises(ValueError, match='lda_debias'):
-        RefitPolicy(lda_debias=1.5)
+        RefitPolicy(lda_debias=2.5)
+
+
+def test_steal_budget_gives_each_taught_class_its_own_share(wide) -> None:  # noqa: ANN001
+    """A class taught on top of a built one gets less of the correction than a distinct one."""
+    bank = wide[0]
+    head = bank.head
+    x, y = _data(40, seed=1)
+    near = x[y == 0][:5]            # five of class 0's own rows: inside its spread
+    far = torch.zeros(1, D)
+    far[0, 30:60] = 1.5 * torch.randn(30, generator=torch.Generator().manual_seed(7))
+    far = _samples(far, torch.zeros(5, dtype=torch.int64), seed=13)
+
+    def taught(policy: RefitPolicy):  # noqa: ANN202
+        bf = add_examples(BankFile.of(bank, 'float32'), near, 'near', policy=policy).file
+        return add_examples(bf, far, 'far', policy=policy)
+
+    res = taught(RefitPolicy(gamma='keep', lda_debias=2.0, lda_steal_budget=0.01))
+    shares = res.bank.meta['refit']['lda_debias_shares']
+    assert set(shares) == {'near', 'far'} and 0 <= shares['near'] < shares['far'] == 2.0
+    loose = taught(RefitPolicy(gamma='keep', lda_debias=2.0, lda_steal_budget=0.5))
+    assert loose.bank.meta['refit']['lda_debias_shares']['near'] > shares['near']
+    plain = taught(RefitPolicy(gamma='keep'))
+    lift = (res.bank.head.lda_bias - plain.bank.head.lda_bias).double()
+    assert torch.allclose(lift[:CLASSES], torch.zeros(CLASSES, dtype=torch.float64), atol=1e-3)
+    for name, f in shares.items():
+        c = res.bank.class_names.index(name)
+        assert abs(float(lift[c]) - f * head.lda_trace / (2 * 5)) < 1e-3 * head.lda_trace

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank import ridge
+from point_gn_ros.bank.debias import check_policy as check_debias, taught_shares
 from point_gn_ros.bank.half import rounded_head
 from point_gn_ros.bank.head import Head, fit_head
 # ScatterStats re-exported: bank_file.py and the scripts import it from here.
@@ -70,6 +71,9 @@ class RefitPolicy:
     lda_debias: share f of the mean-noise correction a wide LDA gives each enrolled class
     (one not in the build's provenance): its LDA bias += f tr(Sigma_a^-1 Sigma) / (2 n), n
     its entries (bank/lda.py `lda_noise_trace`). 0 (default): none; built classes never.
+    lda_steal_budget: rho > 0 makes lda_debias a cap: each enrolled class gets the largest
+    share <= lda_debias whose predicted steal rate from the built classes is <= rho
+    (bank/debias.py). 0 (default): every enrolled class gets lda_debias.
     """
 
     gamma: GammaPolicy = 'auto'
@@ -81,6 +85,7 @@ class RefitPolicy:
     lda_prior: LdaPrior = 'entries'
     vote_prior: float = 0.0
     lda_debias: float = 0.0
+    lda_steal_budget: float = 0.0
     # A section with a kernel ridge term (bank/ridge.py) whose rows changed: 'off' serves the
     # head without the term at once (its own CV temperature) and marks the full refit pending
     # (bank/live.py runs it in the background); 'full' refits it here (seconds: offline use).
@@ -90,8 +95,7 @@ class RefitPolicy:
         if not (np.isfinite(self.vote_prior) and 0.0 <= self.vote_prior <= MAX_VOTE_PRIOR):
             raise ValueError(f'vote_prior must be in [0, {MAX_VOTE_PRIOR:g}], got '
                              f'{self.vote_prior!r}')
-        if not (np.isfinite(self.lda_debias) and 0.0 <= self.lda_debias <= 1.0):
-            raise ValueError(f'lda_debias must be in [0, 1], got {self.lda_debias!r}')
+        check_debias(self.lda_debias, self.lda_steal_budget)
         if self.lda_prior not in ('entries', 'balanced'):
             raise ValueError(f'lda_prior must be entries or balanced, got {self.lda_prior!r}')
         if self.gamma not in ('keep', 'cv', 'auto'):
@@ -198,6 +202,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
     groups = example_groups(view)                         # whole classes: rows keep order
     compact = torch.from_numpy(np.searchsorted(present, labels_all))
     gamma, gamma_reason, sel = bank.gamma, 'kept', None
+    wide_counts, shares = None, None       # a kept wide LDA: its classes' entries (debias)
     want_cv = policy.gamma == 'cv' or (
         policy.gamma == 'auto' and len(view) <= policy.cv_max_entries
         and counts[present].min() >= policy.folds)
@@ -228,12 +233,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
             n = torch.from_numpy(np.bincount(labels_all, minlength=bank.num_classes)[present])
             coef, bias = lda_from_means(head.lda_means[torch.from_numpy(present)],
                                         head.lda_precision, n)
-            if policy.lda_debias > 0:      # classes an enrollment created, not built ones
-                built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
-                taught = torch.tensor([bank.class_names[c] not in built for c in present])
-                shift = policy.lda_debias * head.lda_trace / (2 * n.double())
-                bias = bias + (shift * taught).float()
-            new_head = replace(head, lda_coef=coef, lda_bias=bias)
+            new_head, wide_counts = replace(head, lda_coef=coef, lda_bias=bias), n
         elif head is not None and head.lda_coef is not None:
             # Closed-form LDA refit with the CV-chosen shrinkage kept.
             lda_alpha = float(meta.get('head', {}).get('lda_alpha') or 0.0)
@@ -248,6 +248,8 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
         n = torch.from_numpy(np.bincount(labels_all)[present]).double()
         shift = (n.sum() / n).log() - np.log(len(present))
         new_head = replace(new_head, lda_bias=new_head.lda_bias + shift.float())
+    if wide_counts is not None and policy.lda_debias > 0:   # classes enrollments created
+        new_head, shares = _debiased(new_head, wide_counts, present, bank, meta, policy)
     if new_head is not None:
         new_head = _expand_lda(replace(new_head, gamma=gamma), present, bank.num_classes)
     rewhiten = sel is not None and (
@@ -274,9 +276,28 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                      'calibration_reason': cal_reason, 'min_examples': policy.min_examples,
                      'lda_prior': policy.lda_prior, 'vote_prior': policy.vote_prior,
                      'lda_debias': policy.lda_debias,
+                     'lda_steal_budget': policy.lda_steal_budget,
+                     **({} if shares is None else {'lda_debias_shares': shares}),
                      'predicted_classes': int(len(present)),
                      **({} if ridge_how is None else {'ridge': ridge_how})}
     return replace(bank, features=features, gamma=gamma, meta=meta, head=new_head), rewhiten
+
+
+def _debiased(head: Head, n: torch.Tensor, present: np.ndarray, bank: FeatureBank,
+              meta: dict, policy: RefitPolicy) -> tuple[Head, dict[str, float]]:
+    """A kept wide LDA with its enrolled classes' mean-noise correction (bank/debias.py).
+
+    head: over the present classes, priors applied; n: their entries -> (head, share per
+    enrolled class by name).
+    """
+    built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
+    taught = torch.tensor([bank.class_names[c] not in built for c in present])
+    f = taught_shares(head.lda_means[torch.from_numpy(present)], head.lda_coef, head.lda_bias,
+                      head.lda_precision, float(meta.get('head', {}).get('lda_alpha') or 0.0),
+                      head.lda_trace, n, taught, policy.lda_debias, policy.lda_steal_budget)
+    bias = head.lda_bias + (f * head.lda_trace / (2 * n.double())).float()
+    return replace(head, lda_bias=bias), {bank.class_names[c]: float(f[i])
+                                          for i, c in enumerate(present) if taught[i]}
 
 
 def vote_to_z(u: torch.Tensor, head: Head | None) -> torch.Tensor:

@@ -45,7 +45,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument('--lda-debias', type=_share, default=0.0, metavar='F',
                    help="share of a wide LDA's mean-noise correction for a class this add "
                         'creates (bank/lda.py lda_noise_trace): its LDA bias rises by F x '
-                        'tr(P Sigma) / (2 n) for its n examples; 0 = none (default), 0-1')
+                        'tr(P Sigma) / (2 n) for its n examples; 0 = none (default), 0-2; '
+                        'with --steal-budget, the most a class gets')
+    a.add_argument('--steal-budget', type=_budget, default=0.0, metavar='RHO',
+                   help='give a class this add creates the largest share <= --lda-debias '
+                        'whose predicted share of built-class examples called it stays <= '
+                        'RHO (bank/debias.py); 0 = the share itself (default), 0-0.5')
     _common(a)
     a.set_defaults(func=_add)
 
@@ -86,17 +91,28 @@ def _policy(args: argparse.Namespace):
                        min_examples=args.min_examples, folds=args.folds,
                        lda_prior=args.lda_prior, vote_prior=getattr(args, 'vote_prior', 0.0),
                        lda_debias=getattr(args, 'lda_debias', 0.0),
+                       lda_steal_budget=getattr(args, 'steal_budget', 0.0),
                        ridge='full')   # offline: a kernel ridge term is refitted in full
 
 
-def _share(text: str) -> float:
+def _in_range(text: str, top: float) -> float:
     try:
-        share = float(text)
+        value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
-    if not 0.0 <= share <= 1.0:
-        raise argparse.ArgumentTypeError(f'{share:g} must be in [0, 1]')
-    return share
+    if not 0.0 <= value <= top:
+        raise argparse.ArgumentTypeError(f'{value:g} must be in [0, {top:g}]')
+    return value
+
+
+def _share(text: str) -> float:
+    from point_gn_ros.bank.debias import MAX_SHARE
+    return _in_range(text, MAX_SHARE)
+
+
+def _budget(text: str) -> float:
+    from point_gn_ros.bank.debias import MAX_BUDGET
+    return _in_range(text, MAX_BUDGET)
 
 
 def _beta(text: str) -> float:

@@ -40,6 +40,7 @@ from rclpy.task import Future as RclpyFuture
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
+from point_gn_ros.bank.debias import MAX_BUDGET, MAX_SHARE
 from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
 from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.bank.refit import MAX_VOTE_PRIOR
@@ -85,10 +86,18 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                               from_value=0.0, to_value=MAX_VOTE_PRIOR, step=0.0)]}),
     'enroll_lda_debias': (0.0, 'Share f of the mean-noise correction of a wide LDA (bank/lda.py '
                                'lda_noise_trace) for classes created by enrollment: LDA bias += '
-                               'f tr(P Sigma) / (2 n); 0 = none (default). Train CV for the '
+                               'f tr(P Sigma) / (2 n); 0 = none (default); with '
+                               'enroll_steal_budget > 0, the most a class gets. Train CV for the '
                                'shipped default: README, issue 12.',
                           {'floating_point_range': [FloatingPointRange(
-                              from_value=0.0, to_value=1.0, step=0.0)]}),
+                              from_value=0.0, to_value=MAX_SHARE, step=0.0)]}),
+    'enroll_steal_budget': (0.0, 'Steal budget rho of each class created by enrollment '
+                                 '(bank/debias.py): it gets the largest share <= '
+                                 'enroll_lda_debias whose predicted share of built-class '
+                                 'examples called it stays <= rho; 0 = every such class gets '
+                                 'enroll_lda_debias (default).',
+                            {'floating_point_range': [FloatingPointRange(
+                                from_value=0.0, to_value=MAX_BUDGET, step=0.0)]}),
     'enroll_augment': ('none', "Frames each example is stored in (core/augment.py): 'none', "
                                "'mirror', 'rot4' or 'd4' (8 entries per example: the frames "
                                'the yaw alignment confuses on partial scans).',
@@ -144,7 +153,8 @@ class Enrollment(ManagedEntity):
             return TransitionCallbackReturn.FAILURE
         policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'],
                              lda_prior=prior, vote_prior=float(self.values['enroll_vote_prior']),
-                             lda_debias=float(self.values['enroll_lda_debias']))
+                             lda_debias=float(self.values['enroll_lda_debias']),
+                             lda_steal_budget=float(self.values['enroll_steal_budget']))
         try:
             # The first version's model derives from the node's recognizer (same rows): its
             # search index's basis is reused, not fitted again (~0.4 s of start-up CPU).
