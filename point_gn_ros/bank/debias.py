@@ -40,8 +40,11 @@ def _tau(precision: torch.Tensor) -> float:
         hit = _TAU.get(id(precision))
     if hit is not None and hit[0] is precision:
         return hit[1]
-    chol = torch.linalg.cholesky(precision.double())
-    tau = float(torch.cholesky_inverse(chol).diagonal().mean())
+    chol, info = torch.linalg.cholesky_ex(precision.double())
+    if int(info) == 0:
+        tau = float(torch.cholesky_inverse(chol).diagonal().mean())
+    else:     # not numerically positive definite (a rounded precision): from its spectrum
+        tau = float((1.0 / torch.linalg.eigvalsh(precision.double()).clamp_min(1e-300)).mean())
     with _TAU_LOCK:
         if len(_TAU) >= 4:
             _TAU.pop(next(iter(_TAU)))

@@ -226,7 +226,7 @@ class FeatureBank:
                 arrays[name] = t.cpu().numpy().astype(np.float32)
         w = arrays.get('head_whiten')
         if version >= RIDGE_VERSION and w is not None and np.array_equal(w, w.T):
-            # Format 4 keeps an exactly symmetric whitening as its upper triangle (half the
+            # Formats 4-5 keep an exactly symmetric whitening as its upper triangle (half the
             # bytes: the ridge coefficients' room under the shipped bank's 25 MB).
             arrays['head_whiten_triu'] = w[np.triu_indices(len(w))]
             del arrays['head_whiten']

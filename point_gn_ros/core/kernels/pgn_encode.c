@@ -72,6 +72,15 @@ static void *xalloc(size_t bytes) {
  * works through the chunks itself and waits only for chunks the helper has claimed:
  * a helper that is not scheduled in time costs nothing but its wake-up. */
 typedef struct agg_job {
+    /* kNN job (knn = 1): the stage's points (px, py, pz: n each) and centres (qx, qy, qz),
+     * each thread with its own distance / key scratch and a private last row (below) */
+    int knn;
+    const float *px, *py, *pz, *qx, *qy, *qz;
+    int64_t n;
+    int32_t *nb_out;
+    float *dist[2];
+    uint64_t *keys[2];
+    int32_t *tail[2];
     const float *feat;
     int64_t D, S, K, D2p, PS, nchunks;
     const int64_t *cidx;
@@ -96,9 +105,27 @@ typedef struct agg_job {
 #endif
 } agg_job;
 
+/* The kNN rows of centres [c0, c1). A row's search writes 16 int32 of slack past its
+ * end, i.e. into the next row: within a chunk that row is searched afterwards, but the
+ * next chunk's first row may already be done by the other thread, so a chunk's last row
+ * is searched into a private row and copied. */
+static void knn_chunk(agg_job *j, int tid, int64_t c0, int64_t c1) {
+    const int64_t K = j->K;
+    if (c1 - 1 > c0)
+        pgn_knn(j->px, j->py, j->pz, j->n, j->qx + c0, j->qy + c0, j->qz + c0, c1 - 1 - c0, K,
+                j->nb_out + c0 * K, j->dist[tid], j->keys[tid]);
+    pgn_knn(j->px, j->py, j->pz, j->n, j->qx + c1 - 1, j->qy + c1 - 1, j->qz + c1 - 1, 1, K,
+            j->tail[tid], j->dist[tid], j->keys[tid]);
+    memcpy(j->nb_out + (c1 - 1) * K, j->tail[tid], sizeof(int32_t) * (size_t)K);
+}
+
 static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     const int64_t c0 = j->S * chunk / j->nchunks, c1 = j->S * (chunk + 1) / j->nchunks;
     if (c1 <= c0) return;
+    if (j->knn) {
+        knn_chunk(j, tid, c0, c1);
+        return;
+    }
     const int64_t *cidx = j->cidx + c0;
     const int32_t *nb = j->nb + c0 * j->K;
     const float *vx = j->vx + c0 * j->K * 3;
@@ -237,13 +264,17 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     float *vec2 = par ? xalloc(sizeof(float) * (size_t)VS * 2) : NULL;
     float *sepA2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax) : NULL;
     float *sepE2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * 9) : NULL;
+    /* the helper's kNN scratch, and a private last row per thread (knn_chunk) */
+    float *scratch2 = par ? xalloc(sizeof(float) * (size_t)N) : NULL;
+    uint64_t *keys2 = par ? xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32)) : NULL;
+    int32_t *tails = par ? xalloc(sizeof(int32_t) * (size_t)(2 * (K1 + 16))) : NULL;
     int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
     uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
     int rc = 0;
     TOC(11, 11);
     if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
         || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE
-        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2))) {
+        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2 || !tails))) {
         rc = -1;
         goto done;
     }
@@ -274,7 +305,21 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             cxyz[c * 3] = cx[c]; cxyz[c * 3 + 1] = cy[c]; cxyz[c * 3 + 2] = cz[c];
         }
         TIC(2);
-        pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys);
+        if (par) {   /* a lone cloud: the centres' searches shared with the helper */
+            agg_job kj;
+            memset(&kj, 0, sizeof(kj));
+            kj.knn = 1;
+            kj.px = x; kj.py = y; kj.pz = z; kj.n = n;
+            kj.qx = cx; kj.qy = cy; kj.qz = cz;
+            kj.S = S; kj.K = K; kj.nb_out = nb;
+            kj.nchunks = S < 16 ? S : 16;
+            kj.dist[0] = scratch; kj.dist[1] = scratch2;
+            kj.keys[0] = keys; kj.keys[1] = keys2;
+            kj.tail[0] = tails; kj.tail[1] = tails + K1 + 16;
+            par_run(par, &kj);
+        } else {
+            pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys);
+        }
         TOC(2, 1);
         TIC(3);
         /* offsets (gathered rows of the AoS copy: no running sums, so no dependency
@@ -483,7 +528,7 @@ done:
     free(featA); free(featB); free(xyz); free(cxyz); free(soa); free(scratch); free(vx);
     free(vec); free(pe); free(ax); free(cidx); free(nb); free(keys);
     free(sepb); free(sepT); free(sepA); free(sepE);
-    free(pe2); free(vec2); free(sepA2); free(sepE2);
+    free(pe2); free(vec2); free(sepA2); free(sepE2); free(scratch2); free(keys2); free(tails);
     return rc;
 }
 
