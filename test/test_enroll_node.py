@@ -178,7 +178,10 @@ def test_enroll_predict_save_restart_forget(harness: Harness, tiny_bank: Path, t
     from vision_msgs.msg import Detection3DArray, LabelInfo
 
     saved = tmp_path / 'taught.npz'
-    node = _start(tiny_bank, tmp_path / 'node1.log', save_bank_path=str(saved))
+    # The refit policy's parameters reach the bank's record (the tiny bank has no wide LDA,
+    # so they change no answer here: test_wide_lda.py covers their effect).
+    node = _start(tiny_bank, tmp_path / 'node1.log', save_bank_path=str(saved),
+                  enroll_lda_debias=1.5, enroll_steal_budget=0.01)
     c = None
     try:
         c = Client(harness, node)
@@ -210,6 +213,9 @@ def test_enroll_predict_save_restart_forget(harness: Harness, tiny_bank: Path, t
         assert diag[f'count.{NEW}'] == '6' and diag['enroll_enrolled'] == '6'
         ok, text = c.call('save_bank')
         assert ok and 'v1' in text and saved.is_file(), text
+        from point_gn_ros.bank.store import FeatureBank
+        refit = FeatureBank.load(saved).meta['refit']
+        assert (refit['lda_debias'], refit['lda_steal_budget']) == (1.5, 0.01), refit
         # The node answered with exactly the bank it saved (offline Recognizer on the file).
         assert_same_labels([int(a[0][0]) for a in taught], saved, sofa[1] + others)
         assert len(before) == len(others) and all(int(a[0][0]) < 6 for a in before)
