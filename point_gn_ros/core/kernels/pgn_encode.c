@@ -75,6 +75,10 @@ typedef struct agg_job {
     /* kNN job (knn = 1): the stage's points (px, py, pz: n each) and centres (qx, qy, qz),
      * each thread with its own distance / key scratch and a private last row (below) */
     int knn;
+    /* std job (stdp = 1): per-centre partials of the feature-offset std into part (2 S) */
+    int stdp;
+    int64_t Dp;
+    float *part;
     const float *px, *py, *pz, *qx, *qy, *qz;
     int64_t n;
     int32_t *nb_out;
@@ -105,6 +109,48 @@ typedef struct agg_job {
 #endif
 } agg_job;
 
+/* The std pass's partials of one centre: the sums of e and e^2 over the offsets e of its
+ * K neighbours' feature rows from its own row cf (Dp channels), as floats. s1, s2: Dp
+ * floats of scratch (the portable path). Per-channel float partials (4 rows a pass, no
+ * horizontal sum per row), reduced once per centre; the caller adds them in double. */
+static void std_centre(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,
+                       const float *cf, float *s1, float *s2, float *a1, float *a2) {
+#if defined(__AVX512F__)
+    (void)s1; (void)s2;
+    pgn_std_centre_avx512(feat, Dp, nr, K, cf, a1, a2);
+#elif defined(PGN_AVX2)
+    (void)s1; (void)s2;
+    pgn_std_centre_avx2(feat, Dp, nr, K, cf, a1, a2);
+#else
+    for (int64_t d = 0; d < Dp; ++d) { s1[d] = 0.0f; s2[d] = 0.0f; }
+    int64_t t = 0;
+    for (; t + 4 <= K; t += 4) {
+        const float *r0 = feat + (int64_t)nr[t] * Dp, *r1 = feat + (int64_t)nr[t + 1] * Dp;
+        const float *r2 = feat + (int64_t)nr[t + 2] * Dp, *r3 = feat + (int64_t)nr[t + 3] * Dp;
+#pragma omp simd aligned(r0, r1, r2, r3, cf, s1, s2 : 64)
+        for (int64_t d = 0; d < Dp; ++d) {
+            const float e0 = r0[d] - cf[d], e1 = r1[d] - cf[d];
+            const float e2 = r2[d] - cf[d], e3 = r3[d] - cf[d];
+            s1[d] += (e0 + e1) + (e2 + e3);
+            s2[d] += (e0 * e0 + e1 * e1) + (e2 * e2 + e3 * e3);
+        }
+    }
+    for (; t < K; ++t) {
+        const float *r0 = feat + (int64_t)nr[t] * Dp;
+#pragma omp simd aligned(r0, cf, s1, s2 : 64)
+        for (int64_t d = 0; d < Dp; ++d) {
+            const float e0 = r0[d] - cf[d];
+            s1[d] += e0;
+            s2[d] += e0 * e0;
+        }
+    }
+    float x1 = 0.0f, x2 = 0.0f;
+#pragma omp simd reduction(+:x1, x2) aligned(s1, s2 : 64)
+    for (int64_t d = 0; d < Dp; ++d) { x1 += s1[d]; x2 += s2[d]; }
+    *a1 = x1; *a2 = x2;
+#endif
+}
+
 /* The kNN rows of centres [c0, c1). A row's search writes 16 int32 of slack past its
  * end, i.e. into the next row: within a chunk that row is searched afterwards, but the
  * next chunk's first row may already be done by the other thread, so a chunk's last row
@@ -124,6 +170,12 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     if (c1 <= c0) return;
     if (j->knn) {
         knn_chunk(j, tid, c0, c1);
+        return;
+    }
+    if (j->stdp) {
+        for (int64_t c = c0; c < c1; ++c)
+            std_centre(j->feat, j->Dp, j->nb + c * j->K, j->K, j->feat + j->cidx[c] * j->Dp,
+                       j->mx[tid], j->sm[tid], j->part + 2 * c, j->part + 2 * c + 1);
         return;
     }
     const int64_t *cidx = j->cidx + c0;
@@ -268,13 +320,15 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     float *scratch2 = par ? xalloc(sizeof(float) * (size_t)N) : NULL;
     uint64_t *keys2 = par ? xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32)) : NULL;
     int32_t *tails = par ? xalloc(sizeof(int32_t) * (size_t)(2 * (K1 + 16))) : NULL;
+    float *parts = par ? xalloc(sizeof(float) * (size_t)(2 * S1)) : NULL;
     int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
     uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
     int rc = 0;
     TOC(11, 11);
     if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
         || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE
-        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2 || !tails))) {
+        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2 || !tails
+                          || !parts))) {
         rc = -1;
         goto done;
     }
@@ -368,51 +422,20 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
          * (4 rows a pass, no horizontal sum per row), reduced once per centre into
          * double totals */
         double f1 = 0.0, f2 = 0.0;
-        {
-            float *s1 = mx, *s2 = sm;
+        if (par) {   /* a lone cloud: the centres' partials shared, summed here in order */
+            agg_job sj;
+            memset(&sj, 0, sizeof(sj));
+            sj.stdp = 1;
+            sj.feat = feat; sj.Dp = Dp; sj.cidx = cidx; sj.nb = nb; sj.S = S; sj.K = K;
+            sj.nchunks = S < 16 ? S : 16;
+            sj.mx[0] = mx; sj.sm[0] = sm; sj.mx[1] = vec2; sj.sm[1] = vec2 + VS;
+            sj.part = parts;
+            par_run(par, &sj);
+            for (int64_t c = 0; c < S; ++c) { f1 += parts[2 * c]; f2 += parts[2 * c + 1]; }
+        } else {
             for (int64_t c = 0; c < S; ++c) {
-                const float *cf = feat + cidx[c] * Dp;
-                const int32_t *nr = nb + c * K;
-#if defined(__AVX512F__)
-                {
-                    float a1, a2;
-                    pgn_std_centre_avx512(feat, Dp, nr, K, cf, &a1, &a2);
-                    f1 += a1; f2 += a2;
-                    continue;
-                }
-#elif defined(PGN_AVX2)
-                {
-                    float a1, a2;
-                    pgn_std_centre_avx2(feat, Dp, nr, K, cf, &a1, &a2);
-                    f1 += a1; f2 += a2;
-                    continue;
-                }
-#endif
-                for (int64_t d = 0; d < Dp; ++d) { s1[d] = 0.0f; s2[d] = 0.0f; }
-                int64_t t = 0;
-                for (; t + 4 <= K; t += 4) {
-                    const float *r0 = feat + (int64_t)nr[t] * Dp, *r1 = feat + (int64_t)nr[t + 1] * Dp;
-                    const float *r2 = feat + (int64_t)nr[t + 2] * Dp, *r3 = feat + (int64_t)nr[t + 3] * Dp;
-#pragma omp simd aligned(r0, r1, r2, r3, cf, s1, s2 : 64)
-                    for (int64_t d = 0; d < Dp; ++d) {
-                        const float e0 = r0[d] - cf[d], e1 = r1[d] - cf[d];
-                        const float e2 = r2[d] - cf[d], e3 = r3[d] - cf[d];
-                        s1[d] += (e0 + e1) + (e2 + e3);
-                        s2[d] += (e0 * e0 + e1 * e1) + (e2 * e2 + e3 * e3);
-                    }
-                }
-                for (; t < K; ++t) {
-                    const float *r0 = feat + (int64_t)nr[t] * Dp;
-#pragma omp simd aligned(r0, cf, s1, s2 : 64)
-                    for (int64_t d = 0; d < Dp; ++d) {
-                        const float e0 = r0[d] - cf[d];
-                        s1[d] += e0;
-                        s2[d] += e0 * e0;
-                    }
-                }
-                float a1 = 0.0f, a2 = 0.0f;
-#pragma omp simd reduction(+:a1, a2) aligned(s1, s2 : 64)
-                for (int64_t d = 0; d < Dp; ++d) { a1 += s1[d]; a2 += s2[d]; }
+                float a1, a2;
+                std_centre(feat, Dp, nb + c * K, K, feat + cidx[c] * Dp, mx, sm, &a1, &a2);
                 f1 += a1; f2 += a2;
             }
         }
@@ -529,6 +552,7 @@ done:
     free(vec); free(pe); free(ax); free(cidx); free(nb); free(keys);
     free(sepb); free(sepT); free(sepA); free(sepE);
     free(pe2); free(vec2); free(sepA2); free(sepE2); free(scratch2); free(keys2); free(tails);
+    free(parts);
     return rc;
 }
 
