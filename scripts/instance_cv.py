@@ -37,8 +37,8 @@ import torch
 from point_gn_ros.bank import ridge
 from point_gn_ros.bank.builder import feature_cache_path
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.debias import taught_shares
 from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, refit
+from point_gn_ros.bank.refit import enrolled_debias
 from point_gn_ros.bank.live import refit_ridge_sections
 from point_gn_ros.bank.vote_prior import META_KEY
 from point_gn_ros.core.config import ENCODER_VERSION
@@ -113,24 +113,21 @@ def with_beta(bf: BankFile, beta: float, names: list[str], scope: str) -> BankFi
                     views=BankFile(views, bf.views.stored))
 
 
-def with_debias(bf: BankFile, f: float, names: list[str], budget: float = 0.0) -> BankFile:
-    """Both sections with f x the mean-noise correction on the LDA bias of `names`.
+def with_debias(bf: BankFile, f: float, budget: float = 0.0) -> BankFile:
+    """Both sections with the enrolled classes' wide-LDA mean-noise correction.
 
-    (wide-LDA sections only; t = the head's lda_trace, bank/lda.py): bias_c += f_c t / (2 n_c),
-    f_c = f, or with a steal budget > 0 the share bank/debias.py gives class c (cap f), as
-    RefitPolicy(lda_debias=f, lda_steal_budget=budget) would.
+    As RefitPolicy(lda_debias=f, lda_steal_budget=budget) gives it (bank/refit.py
+    `enrolled_debias`; enrolled = not in the build's provenance), on banks refitted without.
     """
+    policy = RefitPolicy(lda_debias=f, lda_steal_budget=budget)
+
     def put(bank):  # noqa: ANN001, ANN202
         head = bank.head
         if f == 0 or head is None or not head.lda_wide:
             return bank
-        n = torch.bincount(bank.labels, minlength=bank.num_classes).double()
-        taught = torch.tensor([c in names for c in bank.class_names])
-        shares = taught_shares(head.lda_means, head.lda_coef, head.lda_bias,
-                               head.lda_precision, float(bank.meta['head']['lda_alpha']),
-                               head.lda_trace, n, taught, f, budget)
-        bias = head.lda_bias + (shares * head.lda_trace / (2 * n)).float()
-        return replace(bank, head=replace(head, lda_bias=bias))
+        n = torch.bincount(bank.labels, minlength=bank.num_classes)
+        head, _ = enrolled_debias(head, n, np.arange(bank.num_classes), bank, bank.meta, policy)
+        return replace(bank, head=head)
     views = put(bf.bank.views)
     return BankFile(replace(put(bf.bank), views=views), bf.stored,
                     views=BankFile(views, bf.views.stored))
@@ -255,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
         cur = refit_ridge_sections(cur)
         q_inst, q_ids = torch.cat(query), np.asarray(q_ids)
         for b, fd, rho in grid:
-            bb = with_beta(with_debias(cur, fd, names, rho), b, names, args.scope)
+            bb = with_beta(with_debias(cur, fd, rho), b, names, args.scope)
             res[b, fd, rho]['inst'].append(float((predict(bb, q_inst) == q_ids).mean()))
             for kind, q, t in (('complete', q_full, t_full), ('scan', q_scan, t_scan)):
                 now = predict(bb, q) == t

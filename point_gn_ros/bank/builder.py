@@ -14,7 +14,7 @@ import torch
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.bank.transform import FeatureTransform, Standardize
-from point_gn_ros.bank.half import MatrixDtype, rounded, rounded_head
+from point_gn_ros.bank.half import MatrixDtype, rounded_head, rounded_transform
 from point_gn_ros.bank.head import Head, fit_head
 from point_gn_ros.bank.selection import (DEFAULT_ALPHAS, DEFAULT_GAMMAS, DEFAULT_LDA_ALPHAS,
                                          DEFAULT_WEIGHTS, Selection, calibrate_novelty,
@@ -67,7 +67,7 @@ def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel:
     matrix_dtype: the projection, whitening and wide-LDA precision are rounded as a file
     of that matrix dtype stores them (bank/half.py) before anything is computed with them.
     """
-    tf, _ = rounded(FeatureTransform.fit(feats, sel.standardize, sel.dims), None, matrix_dtype)
+    tf = rounded_transform(FeatureTransform.fit(feats, sel.standardize, sel.dims), matrix_dtype)
     z = tf(feats)
     lab = torch.as_tensor(np.asarray(labels), dtype=torch.int64)
     head = rounded_head(fit_head(z, lab, num_classes, sel.gamma, sel.alpha, sel.lda_alpha,

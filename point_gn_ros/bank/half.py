@@ -13,8 +13,9 @@ Entries 2^24 below a matrix's largest become float16 subnormals (absolute error
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import torch
@@ -24,7 +25,6 @@ if TYPE_CHECKING:
     from point_gn_ros.bank.transform import FeatureTransform
 
 MatrixDtype = Literal['float32', 'float16']
-MATRIX_DTYPES: tuple[str, ...] = ('float32', 'float16')
 # The file arrays stored this way (head_whiten_triu: format 4's triangle of head_whiten).
 HALF_MATRICES = ('tf_projection', 'head_whiten', 'head_whiten_triu', 'head_lda_precision')
 # float16's largest power of two below its maximum (65504) is 2^15.
@@ -47,13 +47,9 @@ def round_matrix(t: torch.Tensor | None) -> torch.Tensor | None:
     return torch.from_numpy(back).to(t.device)
 
 
-def rounded(tf: 'FeatureTransform', head: 'Head | None',
-            dtype: MatrixDtype) -> tuple['FeatureTransform', 'Head | None']:
-    """The transform and head with their large matrices as a `dtype` file stores them."""
-    if dtype == 'float32':
-        return tf, head
-    tf = replace(tf, projection=round_matrix(tf.projection))
-    return tf, rounded_head(head, dtype)
+def rounded_transform(tf: 'FeatureTransform', dtype: MatrixDtype) -> 'FeatureTransform':
+    """The transform with its PCA projection as a `dtype` file stores it."""
+    return tf if dtype == 'float32' else replace(tf, projection=round_matrix(tf.projection))
 
 
 def rounded_head(head: 'Head | None', dtype: MatrixDtype) -> 'Head | None':
@@ -70,7 +66,8 @@ def encode(a: np.ndarray) -> tuple[np.ndarray, int]:
     Raises ValueError when a value does not survive (a matrix fitted without rounding).
     """
     # Rounding may carry the largest entry up to 2^15 x 2^e: then e is one below _exponent.
-    for e in (_exponent(a), _exponent(a) - 1):
+    top = _exponent(a)
+    for e in (top, top - 1):
         half = np.ldexp(a, -e).astype(np.float16)
         if np.array_equal(np.ldexp(half.astype(np.float32), e), a):
             return half, e
@@ -81,3 +78,27 @@ def encode(a: np.ndarray) -> tuple[np.ndarray, int]:
 def decode(a: np.ndarray, e: int) -> np.ndarray:
     """A stored float16 matrix and its exponent -> float32 values (exact)."""
     return np.ldexp(a.astype(np.float32), e)
+
+
+def decode_arrays(bad: Callable[[str], Exception], a: dict[str, np.ndarray],
+                  meta: dict[str, Any], half: bool) -> dict[str, np.ndarray]:
+    """A section's file arrays with its float16 matrices as float32; `bad` makes a BankError.
+
+    half: the file is format 5. Elsewhere a float16 matrix is refused (no scale to apply).
+    """
+    scales = meta.get('matrix_scale_log2', {}) if half else {}
+    if not isinstance(scales, dict) or (half and meta.get('matrix_dtype') != 'float16'):
+        raise bad('format 5 needs matrix_dtype float16 and a matrix_scale_log2 object')
+    out = dict(a)
+    for name in HALF_MATRICES:
+        arr = a.get(name)
+        if arr is None:
+            continue
+        e = scales.get(name)
+        if half != (arr.dtype == np.float16) or (half and (
+                not isinstance(e, int) or isinstance(e, bool) or abs(e) > MAX_SCALE_LOG2)):
+            raise bad(f'{name} must be float16 with an integer scale exponent in format 5 '
+                      f'and float32 before it, got {arr.dtype}, exponent {e!r}')
+        if half:
+            out[name] = decode(arr, e)
+    return out

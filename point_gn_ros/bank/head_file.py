@@ -8,32 +8,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from point_gn_ros.bank.half import HALF_MATRICES, MAX_SCALE_LOG2, decode
 from point_gn_ros.bank.head import Head
-
-
-def decoded_matrices(bad: Callable[[str], Exception], a: dict[str, np.ndarray],
-                     meta: dict[str, Any], half: bool) -> dict[str, np.ndarray]:
-    """The section's arrays with its float16 matrices (format 5, bank/half.py) as float32.
-
-    half: the file is format 5. Elsewhere a float16 matrix is refused (no scale to apply).
-    """
-    scales = meta.get('matrix_scale_log2', {}) if half else {}
-    if not isinstance(scales, dict) or (half and meta.get('matrix_dtype') != 'float16'):
-        raise bad('format 5 needs matrix_dtype float16 and a matrix_scale_log2 object')
-    out = dict(a)
-    for name in HALF_MATRICES:
-        arr = a.get(name)
-        if arr is None:
-            continue
-        e = scales.get(name)
-        if half != (arr.dtype == np.float16) or (half and (
-                not isinstance(e, int) or isinstance(e, bool) or abs(e) > MAX_SCALE_LOG2)):
-            raise bad(f'{name} must be float16 with an integer scale exponent in format 5 '
-                      f'and float32 before it, got {arr.dtype}, exponent {e!r}')
-        if half:
-            out[name] = decode(arr, e)
-    return out
 
 
 def head_from_arrays(bad: Callable[[str], Exception], a: dict[str, np.ndarray],

@@ -249,7 +249,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
         shift = (n.sum() / n).log() - np.log(len(present))
         new_head = replace(new_head, lda_bias=new_head.lda_bias + shift.float())
     if wide_counts is not None and policy.lda_debias > 0:   # classes enrollments created
-        new_head, shares = _debiased(new_head, wide_counts, present, bank, meta, policy)
+        new_head, shares = enrolled_debias(new_head, wide_counts, present, bank, meta, policy)
     if new_head is not None:
         new_head = _expand_lda(replace(new_head, gamma=gamma), present, bank.num_classes)
     rewhiten = sel is not None and (
@@ -283,12 +283,12 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
     return replace(bank, features=features, gamma=gamma, meta=meta, head=new_head), rewhiten
 
 
-def _debiased(head: Head, n: torch.Tensor, present: np.ndarray, bank: FeatureBank,
-              meta: dict, policy: RefitPolicy) -> tuple[Head, dict[str, float]]:
+def enrolled_debias(head: Head, n: torch.Tensor, present: np.ndarray, bank: FeatureBank,
+                    meta: dict, policy: RefitPolicy) -> tuple[Head, dict[str, float]]:
     """A kept wide LDA with its enrolled classes' mean-noise correction (bank/debias.py).
 
-    head: over the present classes, priors applied; n: their entries -> (head, share per
-    enrolled class by name).
+    head: over the present classes (class ids `present`), priors applied; n: their entries;
+    enrolled = not in meta's build provenance -> (head, share per enrolled class by name).
     """
     built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
     taught = torch.tensor([bank.class_names[c] not in built for c in present])

@@ -64,8 +64,8 @@ from point_gn_ros.bank.head import Head
 from point_gn_ros.bank.quant import (_INTEGER_DTYPES, STORED_DTYPES, pack_int4,  # noqa: F401
                                      quantized, to_stored, unpack_int4)
 from point_gn_ros.bank.transform import FeatureTransform
-from point_gn_ros.bank.half import HALF_MATRICES, encode
-from point_gn_ros.bank.head_file import decoded_matrices, head_from_arrays
+from point_gn_ros.bank.half import HALF_MATRICES, decode_arrays, encode
+from point_gn_ros.bank.head_file import head_from_arrays
 from point_gn_ros.bank.validate import check_bank_arrays
 
 FORMAT_VERSION = 3
@@ -329,7 +329,7 @@ class FeatureBank:
             gamma = float(meta['gamma'])
         except (KeyError, TypeError, ValueError) as exc:
             raise bad(f'incomplete metadata ({exc})') from None
-        a = decoded_matrices(bad, a, meta, version == HALF_VERSION)
+        a = decode_arrays(bad, a, meta, version == HALF_VERSION)
         feats, labels = a['features'], a['labels']
         mean, scale = a['tf_mean'], a['tf_scale']
         proj = a.get('tf_projection')
