@@ -17,7 +17,7 @@ Protocol (issue 12 goal):
   (a) complete objects at a seeded random yaw, (b) one single-view scan of each (seed 7).
 Nothing here is tuned on the test split: the bank's knobs were chosen by CV on train.
 
-Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR]
+Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR] [--draws K]
      [--augment none|mirror|rot4|d4] [--view-protocol hpr|zbuffer] [--lda-prior balanced]
      [--vote-prior BETA] [--lda-debias F] [--steal-budget RHO]
      [--cv-augment]
@@ -57,6 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--enroll-views', type=int, default=5)
     p.add_argument('--query-views', type=int, default=20)
     p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--draws', type=int, default=1,
+                   help='repeat the study for seeds --seed .. --seed + DRAWS - 1 (other '
+                        'objects, views and yaws each) and report the mean and spread')
     p.add_argument('--augment', choices=tuple(AUGMENTS), default='none',
                    help='frames each enrolled scan is stored in (core/augment.py)')
     p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries',
@@ -79,9 +82,33 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--cache', default=None, metavar='DIR',
                    help='reuse the encoded clouds (keyed by encoder configuration and seeds)')
     args = p.parse_args(argv)
-
+    if args.draws < 1:
+        p.error('--draws must be >= 1')
     bf = BankFile.load(args.bank)
     encoder = make_encoder(bf.bank.config)
+    draws = [study(argparse.Namespace(**{**vars(args), 'seed': args.seed + d}), bf, encoder)
+             for d in range(args.draws)]
+    out = draws[0] if args.draws == 1 else {'draws': draws, 'summary': summary(draws)}
+    print(json.dumps(out, indent=2))
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=2) + '\n')
+    return 0
+
+
+def summary(draws: list[dict]) -> dict:
+    """Mean, sample std and range over draws of the goal's three figures."""
+    figures = {'new_objects_accuracy': [d['new_objects_accuracy'] for d in draws]}
+    for kind in ('complete', 'single_view'):
+        figures[f'existing_drop_points_{kind}'] = [d['existing_drop_points'][kind]
+                                                   for d in draws]
+    return {'seeds': [d['seed'] for d in draws],
+            **{k: {'mean': float(np.mean(v)), 'std': float(np.std(v, ddof=1)),
+                   'min': float(np.min(v)), 'max': float(np.max(v)), 'per_draw': v}
+               for k, v in figures.items()}}
+
+
+def study(args: argparse.Namespace, bf: BankFile, encoder) -> dict:
+    """One draw of the protocol (module docstring) for args.seed -> its figures."""
     test = open_dataset(args.data, split='test')
     rng = np.random.default_rng(args.seed)
     chosen = {c: int(rng.choice(np.flatnonzero(test.labels == test.class_names.index(c))))
@@ -174,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         for k, pred in (('complete', snap.model.classifier.classify(f_full).labels),
                         ('single_view', snap.model.classifier.classify(f_view).labels))}
     out = {
+        'seed': args.seed,
         'bank': str(bf.bank.path), 'bank_version': snap.version, 'gamma': snap.bank.gamma,
         'augment': args.augment, 'view_protocol': args.view_protocol,
         'lda_prior': args.lda_prior, 'vote_prior': args.vote_prior,
@@ -195,10 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     if cv is not None:
         out['augment_cv_on_enrolled_scans'] = cv
-    print(json.dumps(out, indent=2))
-    if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=2) + '\n')
-    return 0
+    return out
 
 
 def augment_cv(bf: BankFile, encoder, scans: dict[str, list[np.ndarray]], augment: str,

@@ -263,7 +263,11 @@ def main(argv: list[str] | None = None) -> int:
             f'{res[g]["scan"][-1]:.2f}' for g in grid), file=sys.stderr)
     table = {key(g): {'instance_accuracy': float(np.mean(v['inst'])),
                       'drop_complete_points': float(np.mean(v['complete'])),
-                      'drop_scan_points': float(np.mean(v['scan']))} for g, v in res.items()}
+                      'drop_scan_points': float(np.mean(v['scan'])),
+                      # the rounds' spread: how far one draw of 10 objects may land
+                      'round_std': {k: float(np.std(v[k], ddof=1)) if len(v[k]) > 1 else 0.0
+                                    for k in ('inst', 'complete', 'scan')}}
+             for g, v in res.items()}
     ok = [g for g in grid if table[key(g)]['drop_complete_points'] <= args.max_drop
           and table[key(g)]['drop_scan_points'] <= args.max_drop]
     chosen = max(ok, key=lambda g: (table[key(g)]['instance_accuracy'], -g[0], -g[1], g[2])) \

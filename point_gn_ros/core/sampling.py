@@ -162,16 +162,27 @@ def canonical_yaw(xyz: np.ndarray) -> np.ndarray:
     good as another.
     """
     xy = xyz[:, :2].astype(np.float64)
-    cov = np.cov(xy.T) if len(xy) > 1 else np.eye(2)
+    cov = _cov_rows(xy.T) if len(xy) > 1 else np.eye(2)
     _, vecs = np.linalg.eigh(cov)
     major = vecs[:, 1]                                 # eigenvalues ascend
     c, s = major[0], major[1]
     xy = xy @ np.array([[c, -s], [s, c]])              # major axis -> x
-    signs = np.sign((xy ** 3).mean(axis=0))
+    # |x|^3 with x's sign, not x ** 3: pow of a negative base takes libm's slow path (0.28 ms
+    # a cloud); the signs agreed on 16,415 ModelNet40 clouds and scans (BENCHMARKS.md).
+    signs = np.sign(np.copysign(np.abs(xy) ** 3, xy).mean(axis=0))
     signs[signs == 0] = 1.0
     out = xyz.copy()
     out[:, :2] = xy * signs
     return out.astype(np.float32)
+
+
+def _cov_rows(m: np.ndarray) -> np.ndarray:
+    """np.cov(m) for (V, N) float64 rows, N > 1: its own steps without its argument handling."""
+    x = np.array(m, ndmin=2, dtype=np.float64)
+    x -= x.mean(axis=1)[:, None]
+    c = np.dot(x, x.T.conj())
+    c *= np.true_divide(1, x.shape[1] - 1)
+    return c
 
 
 def prepare(xyz: np.ndarray, n: int = 1024, method: ResampleMethod = 'fps',
