@@ -10,7 +10,9 @@ Protocol (issue 12 goal):
   encoded (`--augment`: each scan stored in the k frames of core/augment.py, as the node's
   `enroll_augment` does) and added through `LiveBank.add` as the node does, one call per object.
   The refit policy is the node's default ('auto': the 9,843-entry bank keeps its CV-chosen gamma
-  and its calibrated threshold, recorded in the bank).
+  and its calibrated threshold, recorded in the bank). `--fuse-views`: each object's scans are
+  also fused (core/fusion.py; given in one frame, as with a robot's odometry, each moved by a
+  registration error of `--pose-noise`) and the fused cloud and 8 scans of it enrolled too.
 - New-object accuracy: 20 OTHER single-view scans of each enrolled object (seed s + 1000, other
   azimuths, noise and dropout), labelled right only as the object's own new class.
 - Existing classes: the ModelNet40 test split without the 10 enrolled objects, before and after,
@@ -20,7 +22,7 @@ Nothing here is tuned on the test split: the bank's knobs were chosen by CV on t
 Run: python scripts/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR] [--draws K]
      [--augment none|mirror|rot4|d4] [--view-protocol hpr|zbuffer] [--lda-prior balanced]
      [--vote-prior BETA] [--lda-debias F] [--steal-budget RHO]
-     [--cv-augment]
+     [--cv-augment] [--fuse-views [--pose-noise S]]
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from point_gn_ros.bank.enroll import BankFile, RefitPolicy
 from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.core.augment import AUGMENTS
 from point_gn_ros.core.config import ENCODER_VERSION
+from point_gn_ros.core.fusion import fused_examples
 from point_gn_ros.core.sampling import rotate_z
 from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
                                      simulate_views)
@@ -78,6 +81,14 @@ def main(argv: list[str] | None = None) -> int:
                         'alone (no query scan read): accuracy per option')
     p.add_argument('--view-protocol', choices=('hpr', 'zbuffer'), default='hpr',
                    help='view simulator setting for every scan (default hpr)')
+    p.add_argument('--fuse-views', action='store_true',
+                   help="also enroll what core/fusion.py draws from each object's enrolled "
+                        'scans fused (given in one frame, as a robot with odometry gives '
+                        'them): the fused cloud and 8 simulated scans of it')
+    p.add_argument('--pose-noise', type=float, default=1.0, metavar='S',
+                   help='with --fuse-views, each enrolled scan is moved before fusing by a '
+                        'registration error: yaw N(0, 2 S deg), shift N(0, 0.01 S radius) per '
+                        'axis (default S = 1)')
     p.add_argument('--json', default=None, help='write the figures here')
     p.add_argument('--cache', default=None, metavar='DIR',
                    help='reuse the encoded clouds (keyed by encoder configuration and seeds)')
@@ -152,6 +163,12 @@ def study(args: argparse.Namespace, bf: BankFile, encoder) -> dict:
     if args.augment != 'none':   # the cache holds the canonical frame only
         for c, i in chosen.items():
             arrays[f'enroll_{c}'] = encode(enrollment_scans(i), args.augment)
+    if args.fuse_views:
+        for c, i in chosen.items():
+            arrays[f'enroll_{c}'] = torch.cat([arrays[f'enroll_{c}'], encode(
+                fused_examples(misregistered(enrollment_scans(i), test[i][0],
+                                             args.pose_noise, args.seed + i),
+                               seed=args.seed + i), args.augment)])
     print(f'encoded {len(rest)} test objects twice in {time.perf_counter() - t0:.0f} s',
           file=sys.stderr)
     policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior, vote_prior=args.vote_prior,
@@ -207,6 +224,8 @@ def study(args: argparse.Namespace, bf: BankFile, encoder) -> dict:
         'lda_prior': args.lda_prior, 'vote_prior': args.vote_prior,
         'lda_debias': args.lda_debias,
         'lda_steal_budget': args.steal_budget,
+        'fuse_views': args.fuse_views, 'pose_noise': args.pose_noise if args.fuse_views
+        else None,
         'refit': snap.bank.meta['refit'], 'objects': chosen,
         'new_objects_accuracy': float((q_pred == q_true).mean()),
         'new_objects_misses_to_another_new_class': float(
@@ -223,6 +242,25 @@ def study(args: argparse.Namespace, bf: BankFile, encoder) -> dict:
     }
     if cv is not None:
         out['augment_cv_on_enrolled_scans'] = cv
+    return out
+
+
+def misregistered(views: list[np.ndarray], obj: np.ndarray, scale: float, seed: int
+                  ) -> list[np.ndarray]:
+    """Each view moved by its own registration error (an odometry-like pose error).
+
+    views: (N_i, 3) scans in the object's frame; obj: (N, 3) the object (its radius sets the
+    shift's scale) -> the views, each turned about z by N(0, 2 scale) degrees around the
+    object's centre and shifted by N(0, 0.01 scale radius) per axis; scale 0: unchanged.
+    """
+    rng = np.random.default_rng([seed, 0x9E6])
+    centre = obj.mean(axis=0)
+    radius = float(np.linalg.norm(obj - centre, axis=1).max())
+    out = []
+    for v in views:
+        yaw = float(np.deg2rad(rng.normal(0.0, 2.0 * scale)))
+        shift = rng.normal(0.0, 0.01 * scale * radius, 3)
+        out.append((rotate_z(v - centre, yaw) + centre + shift).astype(np.float32))
     return out
 
 

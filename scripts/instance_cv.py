@@ -42,11 +42,14 @@ from point_gn_ros.bank.refit import enrolled_debias
 from point_gn_ros.bank.live import refit_ridge_sections
 from point_gn_ros.bank.vote_prior import META_KEY
 from point_gn_ros.core.config import ENCODER_VERSION
+from point_gn_ros.core.fusion import fused_examples
 from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
                                      simulate_views)
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.datasets.views import ViewsDataset
 from point_gn_ros.recognizer import encode_clouds, make_encoder
+
+from enroll_study import misregistered  # noqa: I001 - scripts/ is on sys.path when run
 
 MODELNET = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'modelnet40_1024'
 MODELNET10 = ('bathtub', 'bed', 'chair', 'desk', 'dresser', 'monitor', 'night_stand', 'sofa',
@@ -201,6 +204,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="existing-class scans: the bank's own scans of each held-out object, "
                         "or one scan from a random viewpoint (enroll_study's existing-class "
                         'protocol, seed [7, object])')
+    p.add_argument('--fuse-views', action='store_true',
+                   help="also enroll core/fusion.py's examples from each pseudo-instance's 5 "
+                        "scans fused (enroll_study.py --fuse-views, same registration error)")
+    p.add_argument('--pose-noise', type=float, default=1.0, metavar='S',
+                   help='registration error scale of --fuse-views (enroll_study.py)')
     p.add_argument('--json', default=None)
     p.add_argument('--bank', default=None, help='bank (default: the shipped default bank)')
     args = p.parse_args(argv)
@@ -244,6 +252,11 @@ def main(argv: list[str] | None = None) -> int:
         names, q_ids = [], []
         for c, o, f in zip(MODELNET10, inst, enroll, strict=True):
             name = f'{c}_object_{o}'
+            if args.fuse_views:     # the same 5 scans (seed o), fused after a pose error
+                obj = train[o][0]
+                seen = misregistered([v.points for v in simulate_views(obj, 5, seed=o)], obj,
+                                     args.pose_noise, o)
+                f = torch.cat([f, encode_clouds(fused_examples(seen, seed=o), encoder)])
             cur = add_examples(cur, f, name, source='instance_cv', policy=policy).file
             names.append(name)
             q_ids += [cur.bank.class_names.index(name)] * args.query_views
@@ -273,6 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     chosen = max(ok, key=lambda g: (table[key(g)]['instance_accuracy'], -g[0], -g[1], g[2])) \
         if ok else (0.0, 0.0, 0.0)
     out = {'rounds': args.rounds, 'others': args.others, 'scope': args.scope,
+           'fuse_views': args.fuse_views, 'pose_noise': args.pose_noise,
            'other_scans': args.other_scans,
            'lda_prior': args.lda_prior, 'max_drop': args.max_drop, 'table': table,
            'chosen_beta': chosen[0], 'chosen_debias': chosen[1], 'chosen_budget': chosen[2]}

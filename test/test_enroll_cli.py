@@ -114,3 +114,29 @@ def test_errors_are_one_line(small_bank_path: Path, tmp_path: Path,
     np.save(one, load_modelnet_split('test')[0][0])
     assert main(['bank', 'add', str(small_bank_path), str(one), '--class', 'x', '-o',
                  str(tmp_path / 'one_bank.npz')]) == 0
+
+
+def test_add_fused_views_of_one_object(small_bank_path: Path, tmp_path: Path,
+                                       capsys: pytest.CaptureFixture) -> None:
+    from point_gn_ros.core.views import simulate_views
+
+    xyz, labels, names = load_modelnet_split('test')
+    obj = xyz[np.flatnonzero(labels == names.index('cone'))[3]] + np.float32([1.0, 2.0, 0.0])
+    folder = tmp_path / 'views'
+    folder.mkdir()
+    views = simulate_views(obj, 5, seed=0)           # five sides of it, in one frame
+    for i, v in enumerate(views):
+        np.save(folder / f'view_{i}.npy', v.points)
+    out = tmp_path / 'fused.npz'
+    assert main(['bank', 'add', str(small_bank_path), str(folder), '--class', 'toolbox',
+                 '--fuse-views', '-o', str(out)]) == 0
+    assert "added 14 example(s) to new class 'toolbox'" in capsys.readouterr().out
+    bank = BankFile.load(out).bank
+    assert class_counts(bank)['toolbox'] == 14
+    assert '5 views fused into 9 more examples' in bank.meta['enrollments'][0]['source']
+    # Views of a moving frame cannot be fused: refused in one line, nothing written.
+    for i, v in enumerate(views):
+        np.save(folder / f'view_{i}.npy', v.points + np.float32([4.0 * i, 0.0, 0.0]))
+    assert main(['bank', 'add', str(small_bank_path), str(folder), '--class', 'toolbox',
+                 '--fuse-views', '-o', str(tmp_path / 'no.npz')]) == 2
+    assert 'do not overlap' in capsys.readouterr().err and not (tmp_path / 'no.npz').exists()

@@ -14,6 +14,7 @@ from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.bank.transform import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
+from point_gn_ros.core.views import simulate_views
 from point_gn_ros.node.enroll_engine import EnrollEngine
 
 D = EncoderConfig().feature_dim
@@ -35,7 +36,8 @@ class _FakeRecognizer:
         return out
 
 
-def _engine(tmp_path: Path, chunk: int = 4) -> tuple[EnrollEngine, LiveBank, list]:
+def _engine(tmp_path: Path, chunk: int = 4, fuse_views: bool = False, warn=None  # noqa: ANN001
+            ) -> tuple[EnrollEngine, LiveBank, list]:
     g = torch.Generator().manual_seed(0)
     raw = torch.randn(12, D, generator=g)
     tf = FeatureTransform.fit(raw, 'none')
@@ -45,8 +47,9 @@ def _engine(tmp_path: Path, chunk: int = 4) -> tuple[EnrollEngine, LiveBank, lis
     live = LiveBank(BankFile.of(bank, 'float32'), lambda active: active.num_classes)
     changes: list = []
     eng = EnrollEngine(live, lambda snap, res: changes.append((snap.version, res.count)),
-                       log=lambda text: None, warn=lambda key, text: None, chunk=chunk,
-                       max_pending=100, capture_max=5, min_points=4)
+                       log=lambda text: None, warn=warn or (lambda key, text: None),
+                       chunk=chunk, max_pending=100, capture_max=5, min_points=4,
+                       fuse_views=fuse_views)
     return eng, live, changes
 
 
@@ -135,4 +138,35 @@ def test_producers_worker_and_services_race(tmp_path: Path) -> None:
     versions = [v for v, _ in changes]
     assert versions == sorted(versions) and versions[-1] == live.current().version
     BankFile.load(tmp_path / 'mid.npz')                       # whole, whatever it caught
+    eng.close()
+
+
+def test_a_fused_capture_adds_the_union_and_its_scans(tmp_path: Path) -> None:
+    """fuse_views: a capture of views of one object gains 1 + 8 examples; a moving frame none."""
+    warnings: list[str] = []
+    eng, live, changes = _engine(tmp_path, fuse_views=True,
+                                 warn=lambda key, text: warnings.append(text))
+    rec = _FakeRecognizer()
+    obj = _cloud(0) * 0.3 + np.float32([2.0, 1.0, 0.0])     # one object, fixed frame
+    views = [v.points for v in simulate_views(obj, 5, seed=4)]
+    assert eng.start_capture('mug', None)[0]
+    eng.observe(0, views)
+    assert eng.stop_capture()[0]
+    assert eng.submit('mug', [_cloud(9)], '~/enroll_cloud')[0]   # streamed: never fused
+    _drain(eng, rec)
+    assert class_counts(live.current().bank)['mug'] == 5 + 9 + 1
+    assert sum(rec.calls) == 15 and max(rec.calls) <= 4          # still chunked
+    log = live.current().bank.meta['enrollments']
+    assert '5 views fused into 9 more examples' in log[-2]['source']
+    assert eng.counters['fused'] == 1 and eng.counters['enrolled'] == 15
+    assert not any('not fused' in w for w in warnings)   # (the fake features repeat)
+    assert eng.pending() == 0
+    # Views of a moving frame (the object elsewhere in each): enrolled as they are, warned.
+    assert eng.start_capture('cup', None)[0]
+    eng.observe(0, [v + np.float32([5.0 * i, 0, 0]) for i, v in enumerate(views)])
+    assert eng.stop_capture()[0]
+    _drain(eng, rec)
+    assert class_counts(live.current().bank)['cup'] == 5
+    assert eng.counters['not_fused'] == 1 and any('do not overlap' in w for w in warnings)
+    assert eng.pending() == 0
     eng.close()

@@ -293,6 +293,40 @@ def test_cloud_route_capture_and_guard_rails(harness: Harness, tiny_bank: Path, 
         assert node.stop() == 0, node.log()
 
 
+def test_a_capture_in_a_fixed_frame_is_fused(harness: Harness, tiny_bank: Path,
+                                             tmp_path: Path) -> None:
+    """enroll_fuse_views: 5 views of one object (one frame) become 5 + 9 examples."""
+    from point_gn_ros.core.views import simulate_views
+
+    xyz, _ = pick('test', (NEW,), 1)
+    views = [v.points + np.float32([2.0, -1.0, 0.0]) for v in simulate_views(xyz[0], 5, seed=3)]
+    node = _start(tiny_bank, tmp_path / 'node.log', enroll_class=NEW, enroll_fuse_views=True)
+    c = None
+    try:
+        c = Client(harness, node)
+        c.wait_classes(lambda names: len(names) == 6)
+        assert c.call('start_capture')[0]
+        c.classify(views, 400)
+        ok, text = c.call('stop_capture')
+        assert ok and '5 example(s)' in text, text
+
+        def diag() -> dict:
+            return latest_diagnostics(c.diag, ': enrollment')
+        assert c.h.spin_until(lambda: diag().get(f'count.{NEW}') == '14', 20.0), node.log()
+        assert diag()['enroll_fused'] == '1' and diag()['enroll_not_fused'] == '0'
+        assert '5 views fused into 9 more examples' in node.log()
+        # The same views, each where a moving camera frame would put them: not fused.
+        assert c.call('start_capture')[0]
+        c.classify([v + np.float32([4.0 * i, 0.0, 0.0]) for i, v in enumerate(views)], 500)
+        assert c.call('stop_capture')[0]
+        assert c.h.spin_until(lambda: diag().get(f'count.{NEW}') == '19', 20.0), node.log()
+        assert diag()['enroll_not_fused'] == '1' and 'do not overlap' in node.log()
+    finally:
+        if c is not None:
+            c.close()
+        assert node.stop() == 0, node.log()
+
+
 def test_enrollment_under_load_loses_no_answer(harness: Harness, tiny_bank: Path,
                                               tmp_path: Path, sofa) -> None:  # noqa: ANN001
     """30 objects/s for 4 s while 20 examples are enrolled: no answer lost.

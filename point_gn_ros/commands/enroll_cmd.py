@@ -37,6 +37,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="store each example in these frames (core/augment.py): 'd4' = the 8 "
                         'frames the yaw alignment confuses on partial scans (8 entries per '
                         "example); default 'none'")
+    a.add_argument('--fuse-views', action='store_true',
+                   help='the inputs are views of ONE object in one fixed frame (odom, map): '
+                        'also add their fused cloud and 8 scans simulated from it '
+                        '(core/fusion.py); refused if the views do not overlap')
     a.add_argument('--vote-prior', type=_beta, default=0.0, metavar='BETA',
                    help='class-size prior exponent of the kernel vote for a class this add '
                         'creates (bank/vote_prior.py): its vote is scaled by (mean built-class '
@@ -180,6 +184,13 @@ def _add(args: argparse.Namespace) -> int:
     empty = [i for i, c in enumerate(clouds) if len(c) == 0]
     if not clouds or empty:
         raise EnrollError(f'no usable example: {len(clouds)} input(s), empty: {empty}')
+    if args.fuse_views:
+        from point_gn_ros.core.fusion import with_fused
+        n = len(clouds)
+        clouds, note = with_fused(clouds)
+        if len(clouds) == n:
+            raise EnrollError(f'--fuse-views: {note}')
+        source = f'{source}; {note}'
     encoder = make_encoder(bf.bank.config, args.device)
     feats = encode_clouds(clouds, encoder, batch_size=args.batch_size, augment=args.augment)
     res = add_examples(bf, feats, args.class_name, source=f'point_gn bank add: {source}',

@@ -29,6 +29,7 @@ import torch
 from point_gn_ros.bank.enroll import EnrollError, EnrollResult
 from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.core.augment import variants_per_example
+from point_gn_ros.core.fusion import with_fused
 from point_gn_ros.errors import PointGNError
 
 # How long a service waits for the committer (forget, save) before answering "still running".
@@ -45,6 +46,7 @@ class _Request:
     received: float = field(default_factory=time.monotonic)
     feats: list[torch.Tensor] = field(default_factory=list)
     encoded: int = 0
+    fuse: bool = False                 # views of one object: fused on the worker first
 
 
 @dataclass
@@ -64,15 +66,17 @@ class EnrollEngine:
     examples waiting at most (beyond it a submission is refused and counted); capture_max:
     objects one capture keeps at most; min_points: smaller examples are refused; augment:
     the frames each example is stored in (core/augment.py; k encodings per example, so a
-    worker step encodes chunk // k examples and still costs about one micro-batch).
+    worker step encodes chunk // k examples and still costs about one micro-batch);
+    fuse_views: a capture's objects are views of one object in one fixed frame, fused into
+    more examples (core/fusion.py) in a worker step of their own before encoding.
     """
 
     def __init__(self, live: LiveBank, on_change: Callable[[Snapshot, EnrollResult], None],
                  log: Callable[[str], object], warn: Callable[[Hashable, str], object],
                  chunk: int = 32, max_pending: int = 512, capture_max: int = 200,
-                 min_points: int = 16, augment: str = 'none') -> None:
+                 min_points: int = 16, augment: str = 'none', fuse_views: bool = False) -> None:
         self.live = live
-        self.augment = augment
+        self.augment, self.fuse_views = augment, fuse_views
         self.chunk = max(1, chunk // variants_per_example(augment))
         self.max_pending = max_pending
         self.capture_max, self.min_points = capture_max, min_points
@@ -84,16 +88,21 @@ class EnrollEngine:
         self._capture: _Capture | None = None
         self._committer = ThreadPoolExecutor(max_workers=1, thread_name_prefix='point_gn_enroll')
         self.counters = {'enrolled': 0, 'enrollments': 0, 'refused': 0, 'near_duplicates': 0,
-                         'removed_classes': 0, 'saves': 0, 'errors': 0}
+                         'removed_classes': 0, 'saves': 0, 'errors': 0, 'fused': 0,
+                         'not_fused': 0}
         self.last_latency_s = float('nan')
         self.last_save: tuple[str, int] | None = None
         self.last_error = ''
 
     # ------------------------------------------------------------------ producers
 
-    def submit(self, class_name: str, clouds: Sequence[np.ndarray], source: str
-               ) -> tuple[bool, str]:
-        """Queue examples (z-up (N_i, 3) float32 clouds) of one class; -> (accepted, why)."""
+    def submit(self, class_name: str, clouds: Sequence[np.ndarray], source: str,
+               fuse: bool = False) -> tuple[bool, str]:
+        """Queue examples (z-up (N_i, 3) float32 clouds) of one class; -> (accepted, why).
+
+        fuse: the clouds are views of one object in one fixed frame (core/fusion.py): one
+        request of its own, fused on the worker before it is encoded.
+        """
         name = class_name.strip()
         if not name:
             return self.refuse(len(clouds), 'empty class name')
@@ -109,11 +118,12 @@ class EnrollEngine:
                 pending = self._pending
             else:
                 last = self._requests[-1] if self._requests else None
-                if last is not None and last.class_name == name and last.source == source:
+                if not fuse and last is not None and not last.fuse and \
+                        last.class_name == name and last.source == source:
                     # Examples streaming in (one per message): one enrollment, one version.
                     last.clouds.extend(clouds)
                 else:
-                    self._requests.append(_Request(name, list(clouds), source))
+                    self._requests.append(_Request(name, list(clouds), source, fuse=fuse))
                 self._pending += len(clouds)
                 return True, f'{len(clouds)} example(s) of {name!r} queued'
         return self.refuse(len(clouds), f'{pending} examples already waiting (max '
@@ -138,7 +148,7 @@ class EnrollEngine:
             return False, f'no object was captured for {cap.class_name!r}'
         over = f', {cap.overflow} more over capture_max' if cap.overflow else ''
         return self.submit(cap.class_name, cap.clouds,
-                           f'capture of {len(cap.clouds)} object(s){over}')
+                           f'capture of {len(cap.clouds)} object(s){over}', fuse=self.fuse_views)
 
     def forget(self, class_name: str, source: str) -> tuple[bool, str]:
         """Remove a class (on the committer, in order with pending commits); waits for it."""
@@ -182,6 +192,9 @@ class EnrollEngine:
                 return False
             req = self._requests[0]
             todo = req.clouds[req.encoded:req.encoded + self.chunk]
+        if req.fuse:
+            self._fuse(req)
+            return True
         try:
             req.feats.append(recognizer.encode(todo, augment=self.augment))
         except Exception as exc:  # noqa: BLE001 - one bad example costs its request only
@@ -196,6 +209,21 @@ class EnrollEngine:
         if done:
             self._committer.submit(self._commit, req)
         return bool(self._requests)
+
+    def _fuse(self, req: _Request) -> None:
+        """Worker: a capture's views and what fusing them adds (one step of its own)."""
+        try:
+            clouds, note = with_fused(req.clouds)
+        except Exception as exc:  # noqa: BLE001 - the views are still enrolled as they are
+            clouds, note = req.clouds, f'not fused: {type(exc).__name__}: {exc}'
+        with self._lock:          # a fuse request is never extended by submit()
+            added = len(clouds) - len(req.clouds)
+            req.clouds, req.fuse = clouds, False
+            self._pending += added
+            req.source = f'{req.source}; {note}'
+        self._count('fused' if added else 'not_fused', 1)
+        if not added:
+            self._warn(('not_fused',), f'enrollment of {req.class_name!r}: {note}')
 
     # ------------------------------------------------------------------ committer
 

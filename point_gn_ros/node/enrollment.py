@@ -12,7 +12,8 @@ Standard interfaces only (no custom message package), all in the node's private 
   absent): each message is one example of the class named by parameter ``enroll_class``;
 * ``~/start_capture`` / ``~/stop_capture`` (std_srvs/Trigger): while capturing, every object
   the node classifies on ``capture_topic`` (default: every input topic) is also kept (up to
-  ``capture_max``); stop enrolls them under ``enroll_class``;
+  ``capture_max``); stop enrolls them under ``enroll_class`` (with ``enroll_fuse_views``,
+  as views of one object in one fixed frame: their fused cloud and 8 scans of it too);
 * ``~/forget`` (std_srvs/Trigger): removes the class named by ``enroll_class``;
 * ``~/save_bank`` (std_srvs/Trigger): writes the current bank to ``save_bank_path``
   atomically (temporary file, fsync, rename): a crash leaves the previous file whole.
@@ -105,6 +106,11 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     'enroll_max_pending': (512, 'Examples waiting to be encoded at most; beyond, refused.',
                            {'integer_range': [IntegerRange(from_value=1, to_value=100_000,
                                                            step=1)]}),
+    'enroll_fuse_views': (False, 'A capture (~/start_capture .. ~/stop_capture) holds views '
+                                 'of ONE object in one fixed frame (capture_topic in odom or '
+                                 'map): also enroll their fused cloud and 8 scans simulated '
+                                 'from it (core/fusion.py). Views that do not overlap (a '
+                                 'moving frame) are enrolled as they are, with a warning.', {}),
     'capture_max': (200, 'Objects one capture keeps at most.',
                     {'integer_range': [IntegerRange(from_value=1, to_value=100_000, step=1)]}),
 }
@@ -173,7 +179,7 @@ class Enrollment(ManagedEntity):
             self.live, self._swap, log.info, node._warn, chunk=node.settings.max_batch,
             max_pending=self.values['enroll_max_pending'],
             capture_max=self.values['capture_max'], min_points=node.settings.min_points,
-            augment=augment)
+            augment=augment, fuse_views=bool(self.values['enroll_fuse_views']))
         self._pipeline.observe = self._observe
         self._pipeline.between_batches = self._between_batches
         return TransitionCallbackReturn.SUCCESS
