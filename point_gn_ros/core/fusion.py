@@ -31,10 +31,6 @@ FUSE_MAX_POINTS = 8192
 OVERLAP_FACTOR = 1.5
 
 
-def _radius(xyz: np.ndarray, centre: np.ndarray) -> float:
-    return float(np.sqrt(((xyz - centre) ** 2).sum(axis=1).max()))
-
-
 def views_overlap(views: Sequence[np.ndarray], factor: float = OVERLAP_FACTOR) -> bool:
     """True if every pair of views lies within one object: (N_i, 3) float32 clouds.
 
@@ -43,14 +39,13 @@ def views_overlap(views: Sequence[np.ndarray], factor: float = OVERLAP_FACTOR) -
     """
     if len(views) < 2:
         return False
-    cents = [np.asarray(v, dtype=np.float64).mean(axis=0) for v in views]
-    radii = [_radius(np.asarray(v, dtype=np.float64), c) for v, c in zip(views, cents,
-                                                                           strict=True)]
-    for i in range(len(views)):
-        for j in range(i + 1, len(views)):
-            if np.linalg.norm(cents[i] - cents[j]) > factor * max(radii[i], radii[j], 1e-9):
-                return False
-    return True
+    pts = [np.asarray(v, dtype=np.float64) for v in views]
+    cents = np.stack([p.mean(axis=0) for p in pts])                          # (V, 3)
+    radii = np.array([np.linalg.norm(p - c, axis=1).max() for p, c in zip(pts, cents,
+                                                                           strict=True)])
+    # All pairs at once: a capture may hold capture_max (200) views, ~20k pairs.
+    apart = np.linalg.norm(cents[:, None] - cents[None], axis=2)              # (V, V)
+    return bool((apart <= factor * np.maximum(np.maximum.outer(radii, radii), 1e-9)).all())
 
 
 def fuse_views(views: Sequence[np.ndarray], max_points: int = FUSE_MAX_POINTS,
