@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 from pathlib import Path
 
 import pytest
@@ -49,6 +50,7 @@ def test_extensions_follow_the_lifecycle_and_banks_swap(tiny_bank: Path) -> None
             Parameter('bank_path', value=str(tiny_bank)),
             Parameter('num_points', value=TEST_NUM_POINTS)])
         assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        assert gc.get_freeze_count() > 0     # node/gc_pauses.py: start-up objects frozen
         assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
         assert calls == ['configure 6', 'activate']
         published: list = []
@@ -71,6 +73,7 @@ def test_extensions_follow_the_lifecycle_and_banks_swap(tiny_bank: Path) -> None
         assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
         assert node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
         assert calls[-1] == 'cleanup True' and node.recognizer is None
+        assert gc.get_freeze_count() == 0    # given back with the bank
     finally:
         if node is not None:
             node.destroy_node()

@@ -183,3 +183,34 @@ def test_input_watchdog_names_silent_topics() -> None:
         '', 'no publisher on /b for 6 s', 'no message on /c for 6 s']
     assert dog.problems(names, [1, 1, 1], 5.0, now=6.5)[1] == 'no message on /b for 6 s'
     assert dog.problems(names, [0, 0, 0], 0.0, now=100.0) == ['', '', '']    # 0 = off
+
+
+def test_frozen_start_up_objects_are_skipped_by_full_collections() -> None:
+    import gc
+    import weakref
+
+    from point_gn_ros.node.gc_pauses import freeze_startup_objects, thaw
+
+    class Cycle:
+        pass
+
+    def cycle() -> Cycle:
+        a, b = Cycle(), Cycle()
+        a.other, b.other = b, a            # only the cyclic collector frees these
+        return a
+
+    try:
+        held = cycle()                     # alive at the freeze, garbage after it
+        old = weakref.ref(held)
+        assert freeze_startup_objects() > 0
+        del held
+        new = weakref.ref(cycle())
+        gc.collect()
+        assert new() is None               # made after the freeze: collected as before
+        assert old() is not None           # frozen: a full collection skipped it
+        thaw()
+        assert gc.get_freeze_count() == 0
+        gc.collect()
+        assert old() is None               # thawed: collected again
+    finally:
+        thaw()

@@ -53,6 +53,7 @@ from point_gn_ros.errors import BankError, PointGNError
 from point_gn_ros.node.diagnostics import DiagnosticsBuilder
 from point_gn_ros.node.diagnostics_mixin import DiagnosticsMixin
 from point_gn_ros.node.frames import UpConvention
+from point_gn_ros.node.gc_pauses import freeze_startup_objects, thaw
 from point_gn_ros.node.outputs import Outputs, vision_msgs_available
 from point_gn_ros.node.parameter_mixin import ParameterMixin
 from point_gn_ros.node.params import (PARAMETERS, NodeConfigError, Settings,
@@ -132,7 +133,12 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
             self.get_logger().error(f'configure failed: {type(exc).__name__}: {exc}')
             self._teardown()
             return TransitionCallbackReturn.ERROR
-        return super().on_configure(state)
+        ret = super().on_configure(state)         # the extensions configure here
+        if ret == TransitionCallbackReturn.SUCCESS:
+            frozen = freeze_startup_objects()       # node/gc_pauses.py: no 100 ms pauses
+            self.get_logger().info(f'{frozen} start-up objects kept out of full garbage '
+                                   f'collections')
+        return ret
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Subscribe to the input topics and enable the publishers."""
@@ -283,6 +289,7 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
 
     def _teardown(self) -> None:
         """Undo configure (any part of it); safe to call twice."""
+        thaw()
         self._stop_worker()
         if self._timer is not None:
             self.destroy_timer(self._timer)

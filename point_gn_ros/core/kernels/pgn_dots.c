@@ -13,7 +13,11 @@
  * fuse anything else: a query's result never depends on the queries or rows computed beside
  * it. Register tiles of 2 rows x 4 queries; the rows after the next pair are prefetched, and
  * every query passes over a pair while it is in cache, so a batch reads the bank once (a
- * BLAS GEMM at batch 1 is a matrix-vector product, and rounds by the batch's shape).
+ * BLAS GEMM at batch 1 is a matrix-vector product, and rounds by the batch's shape). A lone
+ * query of int8 codes takes tiles of 8 rows: each row's sum is one chain of dependent FMAs,
+ * and 2 chains left the core waiting on their latency (float32 rows are bound by memory:
+ * there 8 rows a tile were slower).
+ * The tile shape never changes a row's operations, only how many run side by side.
  */
 #include <stdint.h>
 #include <string.h>
@@ -58,7 +62,8 @@ static inline float dsum(dv8 s) {
 #endif
 }
 
-/* R rows (1 or 2) x G queries (1, 2 or 4) of float32 rows (I8 = 0) or int8 codes (I8 = 1);
+/* R rows (1, 2 or 8) x G queries (1, 2 or 4; 1 when R = 8) of float32 rows (I8 = 0) or int8
+ * codes (I8 = 1);
  * constant at each call, so each inlined copy keeps its R x G partial sums in registers. */
 static inline __attribute__((always_inline)) void tile(
         const void *rows, const float *norms, int64_t i, int64_t n, int64_t d,
@@ -66,9 +71,9 @@ static inline __attribute__((always_inline)) void tile(
     const int64_t d8 = d / 8 * 8;
     const float *rf = (const float *)rows;
     const int8_t *rc = (const int8_t *)rows;
-    dv8 acc[2][4] = {{{0}}};
+    dv8 acc[8][4] = {{{0}}};
     for (int64_t j = 0; j < d8; j += 8) {
-        dv8 rv[2];
+        dv8 rv[8];
         for (int r = 0; r < R; ++r)
             rv[r] = I8 ? dload_i8(rc + (i + r) * d + j) : dload(rf + (i + r) * d + j);
         for (int g = 0; g < G; ++g) {
@@ -89,13 +94,14 @@ static inline __attribute__((always_inline)) void tile(
 static inline __attribute__((always_inline)) void rows_tile(
         const void *rows, const float *norms, int64_t i, int64_t n, int64_t d,
         const float *q, int64_t nq, int R, int I8, float *out) {
-    /* the rows after the next pair, ahead of use: one prefetch per cache line */
+    /* the rows after the next tile, ahead of use: one prefetch per cache line */
     const int64_t bytes = I8 ? 1 : 4;
     const char *base = (const char *)rows, *end = base + n * d * bytes;
-    const char *ahead = base + (i + 4) * d * bytes;
+    const char *ahead = base + (i + 2 * R) * d * bytes;
     for (int64_t o = 0; o < R * d * bytes && ahead + o < end; o += 64)
         __builtin_prefetch(ahead + o);
     int64_t b = 0;
+    if (R == 8) { tile(rows, norms, i, n, d, q, 0, 8, 1, I8, out); return; }   /* nq == 1 */
     for (; b + 4 <= nq; b += 4) tile(rows, norms, i, n, d, q, b, R, 4, I8, out);
     if (b + 2 <= nq) { tile(rows, norms, i, n, d, q, b, R, 2, I8, out); b += 2; }
     if (b < nq) tile(rows, norms, i, n, d, q, b, R, 1, I8, out);
@@ -113,6 +119,8 @@ void pgn_dots_f32(const float *feats, int64_t n, int64_t d, const float *q, int6
 void pgn_dots_i8(const int8_t *codes, const float *norms, int64_t n, int64_t d,
                  const float *q, int64_t nq, float *out) {
     int64_t i = 0;
+    if (nq == 1)
+        for (; i + 8 <= n; i += 8) rows_tile(codes, norms, i, n, d, q, nq, 8, 1, out);
     for (; i + 2 <= n; i += 2) rows_tile(codes, norms, i, n, d, q, nq, 2, 1, out);
     if (i < n) rows_tile(codes, norms, i, n, d, q, nq, 1, 1, out);
 }
