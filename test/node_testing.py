@@ -211,6 +211,7 @@ class Harness:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.received: dict[str, list[Any]] = {}
+        self._clients: dict[tuple[Any, str], Any] = {}
 
     def collect(self, msg_type: Any, topic: str, qos: Any = 10) -> list[Any]:
         """Subscribe and append every message to a list (returned, also in .received)."""
@@ -240,16 +241,29 @@ class Harness:
             raise AssertionError(f'node did not subscribe within {timeout} s:\n'
                                  + (node.log() if node else ''))
 
-    def call(self, srv_type: Any, name: str, request: Any, timeout: float = 30.0) -> Any:
-        """Call service `name` and return its response (AssertionError on timeout)."""
-        client = self.node.create_client(srv_type, name)
-        try:
-            assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
+    def call(self, srv_type: Any, name: str, request: Any, timeout: float = 30.0,
+             resend_s: float | None = None) -> Any:
+        """Call service `name` and return its response (AssertionError on timeout).
+
+        A server can drop a response when its reply writer has not yet matched this
+        client's reply reader (a discovery race of ROS 2 services: `wait_for_service` only
+        sees the request side; Fast DDS waits 100 ms, then drops it, ros2/ros2#1253). So the
+        client of each service is made once and kept, and an idempotent request (a query)
+        is sent again every `resend_s` seconds until one is answered.
+        """
+        client = self._clients.get((srv_type, name))
+        if client is None:
+            client = self._clients[srv_type, name] = self.node.create_client(srv_type, name)
+        assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
+        end = time.monotonic() + timeout
+        while True:
             future = client.call_async(request)
-            assert self.spin_until(future.done, timeout), f'{name}: no response'
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+            wait = end - time.monotonic() if resend_s is None else \
+                min(resend_s, end - time.monotonic())
+            if self.spin_until(future.done, max(wait, 0.0)):
+                return future.result()
+            client.remove_pending_request(future)
+            assert time.monotonic() < end, f'{name}: no response in {timeout} s'
 
     def close(self) -> None:
         self.executor.shutdown()

@@ -77,24 +77,22 @@ class Client:
 
     def call(self, name: str) -> tuple[bool, str]:
         from std_srvs.srv import Trigger
-        client = self.h.node.create_client(Trigger, f'{NODE_FQN}/{name}')
-        assert client.wait_for_service(timeout_sec=20.0), self.node.log()
-        future = client.call_async(Trigger.Request())
-        assert self.h.spin_until(future.done, TIMEOUT_S), self.node.log()
-        self.h.node.destroy_client(client)
-        return future.result().success, future.result().message
+        try:       # one client per service, kept (node_testing.Harness.call)
+            result = self.h.call(Trigger, f'{NODE_FQN}/{name}', Trigger.Request(), TIMEOUT_S)
+        except AssertionError as exc:
+            raise AssertionError(f'{exc}\n{self.node.log()}') from None
+        return result.success, result.message
 
     def set_param(self, name: str, value: str) -> None:
         from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
         from rcl_interfaces.srv import SetParameters
-        client = self.h.node.create_client(SetParameters, f'{NODE_FQN}/set_parameters')
-        assert client.wait_for_service(timeout_sec=20.0)
-        future = client.call_async(SetParameters.Request(parameters=[Parameter(
+        req = SetParameters.Request(parameters=[Parameter(
             name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING,
-                                            string_value=value))]))
-        assert self.h.spin_until(future.done, TIMEOUT_S)
-        assert future.result().results[0].successful, future.result().results[0].reason
-        self.h.node.destroy_client(client)
+                                            string_value=value))])
+        # setting a value twice is the same as once: sent again if the answer is lost
+        result = self.h.call(SetParameters, f'{NODE_FQN}/set_parameters', req, TIMEOUT_S,
+                             resend_s=5.0).results[0]
+        assert result.successful, result.reason
 
     def classes(self) -> list[str]:
         return self.names[-1].data.split('\n') if self.names else []

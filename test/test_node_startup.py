@@ -68,7 +68,7 @@ def test_managed_configure_failure_is_reported_and_the_node_stays(tmp_path: Path
     try:
         req = ChangeState.Request(transition=Transition(label='configure'))
         assert not harness.call(ChangeState, f'{fqn}/change_state', req, 60.0).success
-        state = harness.call(GetState, f'{fqn}/get_state', GetState.Request())
+        state = harness.call(GetState, f'{fqn}/get_state', GetState.Request(), resend_s=5.0)
         assert state.current_state.label == 'unconfigured'
         assert proc.proc.poll() is None
         assert 'configure failed: ' in proc.log() and 'bank file not found' in proc.log()
