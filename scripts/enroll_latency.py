@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
                    help='node parameter enroll_augment (frames stored per example)')
     p.add_argument('--vote-prior', type=float, default=0.0,
                    help='node parameter enroll_vote_prior (bank/vote_prior.py)')
-    p.add_argument('--lda-prior', default='entries', choices=('entries', 'balanced'),
+    p.add_argument('--lda-prior', default='entries', choices=('entries', 'balanced', 'typical'),
                    help='node parameter enroll_lda_prior')
     p.add_argument('--lda-debias', type=float, default=0.0,
                    help='node parameter enroll_lda_debias (wide-LDA banks)')

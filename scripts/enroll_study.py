@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
                         'objects, views and yaws each) and report the mean and spread')
     p.add_argument('--augment', choices=tuple(AUGMENTS), default='none',
                    help='frames each enrolled scan is stored in (core/augment.py)')
-    p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries',
+    p.add_argument('--lda-prior', choices=('entries', 'balanced', 'typical'), default='entries',
                    help="LDA class priors after each enrollment's refit (RefitPolicy)")
     p.add_argument('--vote-prior', type=float, default=0.0, metavar='BETA',
                    help="class-size prior exponent of the enrolled classes' kernel vote "

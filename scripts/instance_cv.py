@@ -17,7 +17,13 @@ For each beta of the grid (0 = today's vote) the same enrolled banks are classif
 vote prior on the enrolled classes. The rule picks the largest instance accuracy whose
 existing-class drop stays <= --max-drop points on complete objects AND scans.
 Both sections' LDA is refitted without the held-out objects before anything is measured (as
-an enrollment refits it); the gate and the other knobs keep their build values.
+an enrollment refits it), with the build's entry-share priors; the enrollments refit with
+`--lda-prior`, so a prior that moves the built classes' answers counts in the drop (as in
+enroll_study.py's test protocol; before 2026-12-02's fifth session the 'before' bank had the
+tested prior too). The gate and the other knobs keep their build values.
+With `--new-categories K` the new classes are new CATEGORIES instead (a user's own kind of
+object): each round draws K of the 40 categories, takes every train object of them out of the
+bank and their classes with them (`remove_class`), and enrolls one object of each.
 
 Run: python scripts/instance_cv.py --cache /work/cache [--rounds 4] [--json OUT]
 """
@@ -37,7 +43,8 @@ import torch
 from point_gn_ros.bank import ridge
 from point_gn_ros.bank.builder import feature_cache_path
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, refit
+from point_gn_ros.bank.enroll import (BankFile, RefitPolicy, add_examples, refit,
+                                      remove_class)
 from point_gn_ros.bank.refit import enrolled_debias
 from point_gn_ros.bank.live import refit_ridge_sections
 from point_gn_ros.bank.vote_prior import META_KEY
@@ -191,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--query-views', type=int, default=10)
     p.add_argument('--others', type=int, default=150)
     p.add_argument('--max-drop', type=float, default=1.0)
-    p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries')
+    p.add_argument('--lda-prior', choices=('entries', 'balanced', 'typical'), default='entries')
     p.add_argument('--scope', choices=('enrolled', 'all'), default='enrolled')
     p.add_argument('--betas', type=float, nargs='+', default=list(BETAS))
     p.add_argument('--debias', type=float, nargs='+', default=[0.0],
@@ -209,6 +216,10 @@ def main(argv: list[str] | None = None) -> int:
                         "scans fused (enroll_study.py --fuse-views, same registration error)")
     p.add_argument('--pose-noise', type=float, default=1.0, metavar='S',
                    help='registration error scale of --fuse-views (enroll_study.py)')
+    p.add_argument('--new-categories', type=int, default=0, metavar='K',
+                   help='enroll one object of each of K categories taken out of the bank '
+                        'whole (new kinds of object), instead of one instance per ModelNet10 '
+                        'category')
     p.add_argument('--json', default=None)
     p.add_argument('--bank', default=None, help='bank (default: the shipped default bank)')
     args = p.parse_args(argv)
@@ -226,31 +237,48 @@ def main(argv: list[str] | None = None) -> int:
     assert raw.shape[0] == per * n_obj and np.array_equal(
         bf.views.bank.labels.numpy(), np.repeat(labels, views)), 'feature cache / bank mismatch'
     policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior)
+    built = RefitPolicy(gamma='auto')
     encoder = make_encoder(bf.bank.config)
     grid = [(b, f, rho) for rho in args.budgets for f in args.debias for b in args.betas
             if not (rho and not f)]
     res = {g: {'inst': [], 'complete': [], 'scan': []} for g in grid}
     for r in range(args.rounds):
         rng = np.random.default_rng(100 + r)
+        cats = MODELNET10 if not args.new_categories else tuple(
+            str(c) for c in rng.choice(train.class_names, args.new_categories, replace=False))
         inst = [int(rng.choice(np.flatnonzero(labels == train.class_names.index(c))))
-                for c in MODELNET10]
-        others = rng.choice(np.setdiff1d(np.arange(n_obj), inst), args.others, replace=False)
-        keep = np.ones(n_obj, dtype=bool)
+                for c in cats]
+        gone = np.isin(labels, [train.class_names.index(c) for c in cats]) \
+            if args.new_categories else np.zeros(n_obj, dtype=bool)
+        others = rng.choice(np.setdiff1d(np.flatnonzero(~gone), inst), args.others,
+                            replace=False)
+        keep = ~gone
         keep[inst] = keep[others] = False
-        cur = refitted(subset(bf, keep, raw), policy)
+        cur = subset(bf, keep, raw)
+        for c in cats if args.new_categories else ():      # now classes without entries
+            cur = remove_class(cur, c, source='instance_cv', policy=built).file
+        # 'before' is the bank as built (entry-share priors), as enroll_study's test protocol
+        # has it; the enrollments below refit with the policy under test.
+        cur = refitted(cur, built)
+        if args.new_categories:     # the removals left the ridge term pending: the 'before'
+            cur = refit_ridge_sections(cur)      # state is the one the robot keeps
+        # dataset class id -> the bank's (removing classes shifts the ids after them)
+        bank_id = np.array([cur.bank.class_names.index(n) if n in cur.bank.class_names else -1
+                            for n in train.class_names])
         q_full = torch.from_numpy(np.asarray(raw[per * others]))
         if args.other_scans == 'bank':
             q_scan = torch.from_numpy(np.concatenate([raw[per * o + 1:per * o + per]
                                                       for o in others]))
-            t_scan = np.repeat(labels[others], views)
+            t_scan = np.repeat(bank_id[labels[others]], views)
         else:
-            q_scan, t_scan = random_scans(train, others, args.cache, encoder), labels[others]
-        t_full = labels[others]
+            q_scan = random_scans(train, others, args.cache, encoder)
+            t_scan = bank_id[labels[others]]
+        t_full = bank_id[labels[others]]
         right0 = {'complete': predict(cur, q_full) == t_full,
                   'scan': predict(cur, q_scan) == t_scan}
         enroll, query = scans(train, inst, args.query_views, args.cache, encoder)
         names, q_ids = [], []
-        for c, o, f in zip(MODELNET10, inst, enroll, strict=True):
+        for c, o, f in zip(cats, inst, enroll, strict=True):
             name = f'{c}_object_{o}'
             if args.fuse_views:     # the same 5 scans (seed o), fused after a pose error
                 obj = train[o][0]
@@ -286,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     chosen = max(ok, key=lambda g: (table[key(g)]['instance_accuracy'], -g[0], -g[1], g[2])) \
         if ok else (0.0, 0.0, 0.0)
     out = {'rounds': args.rounds, 'others': args.others, 'scope': args.scope,
+           'new_categories': args.new_categories,
            'fuse_views': args.fuse_views, 'pose_noise': args.pose_noise,
            'other_scans': args.other_scans,
            'lda_prior': args.lda_prior, 'max_drop': args.max_drop, 'table': table,

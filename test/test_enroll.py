@@ -387,3 +387,29 @@ def test_balanced_lda_prior(head_bank) -> None:  # noqa: ANN001
     assert res['balanced'].bank.meta['refit']['lda_prior'] == 'balanced'
     with pytest.raises(ValueError, match='lda_prior'):
         RefitPolicy(lda_prior='uniform')  # type: ignore[arg-type]
+
+
+def test_typical_lda_prior_moves_only_the_enrolled_classes(head_bank) -> None:  # noqa: ANN001
+    """'typical' moves the enrolled classes' LDA priors only.
+
+    The built classes keep their entry-share priors (their answers do not move); an enrolled
+    class gets a built class's mean share, also after a second enrollment.
+    """
+    bf, _ = head_bank
+    built = list(bf.bank.class_names)                  # 5 classes of 24 entries, as built
+    bf = replace(bf, bank=replace(bf.bank, meta={**bf.bank.meta,
+                                                 'provenance': {'per_class': built}}))
+    gen = torch.Generator().manual_seed(81)
+    new_a, new_b = torch.randn(D, generator=gen), torch.randn(D, generator=gen)
+    res = {}
+    for p in ('entries', 'typical'):
+        policy = RefitPolicy(gamma='keep', lda_prior=p)
+        first = add_examples(bf, _queries(new_a, 3, 1), 'new_a', policy=policy).file
+        res[p] = add_examples(first, _queries(new_b, 2, 2), 'new_b', policy=policy).bank
+    a, b = res['entries'].head, res['typical'].head
+    assert torch.equal(a.lda_coef, b.lda_coef)
+    shift = b.lda_bias - a.lda_bias
+    assert torch.equal(shift[:5], torch.zeros(5))
+    assert torch.allclose(shift[5:], torch.tensor([np.log(24 / 3), np.log(24 / 2)]).float(),
+                          atol=1e-5)
+    assert res['typical'].meta['refit']['lda_prior'] == 'typical'

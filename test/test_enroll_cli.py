@@ -95,8 +95,14 @@ def test_add_with_vote_prior_records_it(small_bank_path: Path, tmp_path: Path,
               '--lda-debias', '2.5'])
     assert 'must be in [0, 2]' in capsys.readouterr().err
     assert main(['bank', 'add', str(small_bank_path), str(tmp_path / 'scan.npy'), '--class',
-                 'toolbox', '--lda-debias', '2', '--steal-budget', '0.001', '-o', str(out)]) == 0
-    assert BankFile.load(out).bank.meta['refit']['lda_steal_budget'] == 0.001
+                 'toolbox', '--lda-debias', '1', '--steal-budget', '0.01', '-o', str(out)]) == 0
+    assert BankFile.load(out).bank.meta['refit']['lda_steal_budget'] == 0.01
+    # Without the knobs: train CV's choice (README, "Teaching the robot new objects").
+    assert main(['bank', 'add', str(small_bank_path), str(tmp_path / 'scan.npy'), '--class',
+                 'toolbox', '-o', str(out)]) == 0
+    refit = BankFile.load(out).bank.meta['refit']
+    assert (refit['lda_prior'], refit['lda_debias'], refit['lda_steal_budget']) == \
+        ('typical', 2.0, 0.001), refit
     with pytest.raises(SystemExit):       # out of [0, 0.5]
         main(['bank', 'add', str(out), str(tmp_path / 'scan.npy'), '--class', 'x',
               '--steal-budget', '0.7'])

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 import copy
 import threading
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import numpy as np
 import torch
@@ -39,7 +39,8 @@ AUTO_CV_MAX_ENTRIES = 2000
 _ABSENT_BIAS = -1e4
 
 GammaPolicy = Literal['keep', 'cv', 'auto']
-LdaPrior = Literal['entries', 'balanced']
+LdaPrior = Literal['entries', 'balanced', 'typical']
+LDA_PRIORS: tuple[str, ...] = get_args(LdaPrior)
 # Largest class-size prior exponent accepted (beyond 2 an enrolled class takes over its
 # category's queries: scripts/instance_cv.py).
 MAX_VOTE_PRIOR = 4.0
@@ -62,9 +63,11 @@ class RefitPolicy:
     min_examples: classes with fewer examples are kept in the bank but not predicted (see
     `active_view`) and do not take part in the fit.
     lda_prior: the LDA class priors of the refitted head: 'entries' (each class's share of
-    the bank's entries, as built) or 'balanced' (equal priors: a 5-example class is not
+    the bank's entries, as built), 'balanced' (equal priors: a 5-example class is not
     penalised against 250-example ones; class sizes reflect how many examples were
-    collected, not how often a class is seen).
+    collected, not how often a class is seen) or 'typical' (the built classes keep their
+    entry shares, so their answers do not move; each enrolled class, one not in the build's
+    provenance, gets the mean share of a built class).
     vote_prior: exponent beta of the kernel vote's class-size prior for classes this policy
     creates by enrollment (bank/vote_prior.py; recorded in the bank): their vote is scaled
     by (mean built-class entries / their entries)^beta. 0 (default): the plain vote, as built.
@@ -96,8 +99,9 @@ class RefitPolicy:
             raise ValueError(f'vote_prior must be in [0, {MAX_VOTE_PRIOR:g}], got '
                              f'{self.vote_prior!r}')
         check_debias(self.lda_debias, self.lda_steal_budget)
-        if self.lda_prior not in ('entries', 'balanced'):
-            raise ValueError(f'lda_prior must be entries or balanced, got {self.lda_prior!r}')
+        if self.lda_prior not in LDA_PRIORS:
+            raise ValueError(f'lda_prior must be one of {", ".join(LDA_PRIORS)}, got '
+                             f'{self.lda_prior!r}')
         if self.gamma not in ('keep', 'cv', 'auto'):
             raise ValueError(f'gamma policy must be keep, cv or auto, got {self.gamma!r}')
         if self.calibration not in ('keep', 'recalibrate', 'auto'):
@@ -243,11 +247,10 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                 lda = CovarianceFit.fit(z_view, compact, len(present)).lda(lda_alpha)
             coef, bias = lda
             new_head = replace(head, lda_coef=coef, lda_bias=bias)
-    if new_head is not None and new_head.lda_bias is not None and policy.lda_prior == 'balanced':
-        # Both fits above use entry-share priors: swap them for equal ones.
-        n = torch.from_numpy(np.bincount(labels_all)[present]).double()
-        shift = (n.sum() / n).log() - np.log(len(present))
-        new_head = replace(new_head, lda_bias=new_head.lda_bias + shift.float())
+    if new_head is not None and new_head.lda_bias is not None and policy.lda_prior != 'entries':
+        # Both fits above use entry-share priors: swap them (bank/refit.py RefitPolicy).
+        new_head = replace(new_head, lda_bias=new_head.lda_bias + _prior_shift(
+            policy.lda_prior, np.bincount(labels_all)[present], _taught(bank, meta, present)))
     if wide_counts is not None and policy.lda_debias > 0:   # classes enrollments created
         new_head, shares = enrolled_debias(new_head, wide_counts, present, bank, meta, policy)
     if new_head is not None:
@@ -290,14 +293,37 @@ def enrolled_debias(head: Head, n: torch.Tensor, present: np.ndarray, bank: Feat
     head: over the present classes (class ids `present`), priors applied; n: their entries;
     enrolled = not in meta's build provenance -> (head, share per enrolled class by name).
     """
-    built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
-    taught = torch.tensor([bank.class_names[c] not in built for c in present])
+    taught = torch.from_numpy(_taught(bank, meta, present))
     f = taught_shares(head.lda_means[torch.from_numpy(present)], head.lda_coef, head.lda_bias,
                       head.lda_precision, float(meta.get('head', {}).get('lda_alpha') or 0.0),
                       head.lda_trace, n, taught, policy.lda_debias, policy.lda_steal_budget)
     bias = head.lda_bias + (f * head.lda_trace / (2 * n.double())).float()
     return replace(head, lda_bias=bias), {bank.class_names[c]: float(f[i])
                                           for i, c in enumerate(present) if taught[i]}
+
+
+def _taught(bank: FeatureBank, meta: dict, present: np.ndarray) -> np.ndarray:
+    """(len(present),) bool: the classes an enrollment created (not in the build's provenance)."""
+    built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
+    return np.array([bank.class_names[c] not in built for c in present], dtype=bool)
+
+
+def _prior_shift(prior: LdaPrior, n: np.ndarray, taught: np.ndarray) -> torch.Tensor:
+    """Log-prior change from entry shares n / sum(n) to `prior`'s, per class: (C,) float32.
+
+    n: (C,) entries of the present classes; taught: (C,) bool, the enrolled ones.
+    'balanced': 1 / C each. 'typical': the built classes keep n_c / N, an enrolled class gets
+    their mean share, (sum of built n) / (B N) for B built classes (the priors need not sum
+    to one: the softmax over classes normalises them).
+    """
+    n = torch.from_numpy(np.asarray(n)).double()
+    if prior == 'balanced':
+        return ((n.sum() / n).log() - np.log(len(n))).float()
+    built = ~torch.from_numpy(np.asarray(taught, dtype=bool))
+    if not bool(built.any()):                     # nothing built left: as 'balanced'
+        return _prior_shift('balanced', n.numpy(), taught)
+    typical = n[built].sum() / int(built.sum())   # a built class's mean entries
+    return torch.where(built, 0.0, (typical / n).log()).float()
 
 
 def vote_to_z(u: torch.Tensor, head: Head | None) -> torch.Tensor:

@@ -46,15 +46,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'creates (bank/vote_prior.py): its vote is scaled by (mean built-class '
                         'entries / its entries)^BETA, so a few-example instance is not '
                         'outvoted by its category; 0 = plain vote (default), 0-4')
-    a.add_argument('--lda-debias', type=_share, default=0.0, metavar='F',
+    a.add_argument('--lda-debias', type=_share, default=2.0, metavar='F',
                    help="share of a wide LDA's mean-noise correction for a class this add "
                         'creates (bank/lda.py lda_noise_trace): its LDA bias rises by F x '
-                        'tr(P Sigma) / (2 n) for its n examples; 0 = none (default), 0-2; '
-                        'with --steal-budget, the most a class gets')
-    a.add_argument('--steal-budget', type=_budget, default=0.0, metavar='RHO',
+                        'tr(P Sigma) / (2 n) for its n examples; 0 = none, 0-2; with '
+                        '--steal-budget, the most a class gets (default 2: train CV)')
+    a.add_argument('--steal-budget', type=_budget, default=0.001, metavar='RHO',
                    help='give a class this add creates the largest share <= --lda-debias '
                         'whose predicted share of built-class examples called it stays <= '
-                        'RHO (bank/debias.py); 0 = the share itself (default), 0-0.5')
+                        'RHO (bank/debias.py); 0 = the share itself, 0-0.5 (default 0.001: '
+                        'train CV)')
     _common(a)
     a.set_defaults(func=_add)
 
@@ -82,10 +83,12 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument('--min-examples', type=int, default=1,
                    help='classes with fewer examples take no part in the refit (default 1)')
     p.add_argument('--folds', type=int, default=5, help='CV folds for the refit (default 5)')
-    p.add_argument('--lda-prior', choices=('entries', 'balanced'), default='entries',
+    # bank/refit.py LDA_PRIORS, spelt out: the parser is built without importing torch
+    p.add_argument('--lda-prior', choices=('entries', 'balanced', 'typical'), default='typical',
                    help="LDA class priors of the refitted head: each class's share of the "
-                        "entries (default) or 'balanced' (equal: few-example classes are not "
-                        'penalised)')
+                        "entries, 'balanced' (equal: few-example classes are not penalised) "
+                        "or 'typical' (default: built classes keep theirs, each enrolled "
+                        'class gets the mean of theirs)')
     add_encoder_args(p)
 
 

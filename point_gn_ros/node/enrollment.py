@@ -44,7 +44,7 @@ from std_srvs.srv import Trigger
 from point_gn_ros.bank.debias import MAX_BUDGET, MAX_SHARE
 from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
 from point_gn_ros.bank.live import LiveBank, Snapshot
-from point_gn_ros.bank.refit import MAX_VOTE_PRIOR
+from point_gn_ros.bank.refit import LDA_PRIORS, MAX_VOTE_PRIOR
 from point_gn_ros.core.augment import AUGMENTS
 from point_gn_ros.errors import DecodeError, PointGNError
 from point_gn_ros.node.enroll_detections import StampPairing, crop_box
@@ -74,29 +74,30 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     'enroll_refit_gamma': ('auto', "After a change: 'keep' gamma, re-choose it by 'cv', or "
                                    "'auto' (CV on banks of <= 2,000 entries).",
                            {'additional_constraints': "one of 'auto', 'keep', 'cv'"}),
-    'enroll_lda_prior': ('entries', "LDA class priors after a change: 'entries' (class shares "
-                                    "of the bank) or 'balanced' (equal priors).",
-                         {'additional_constraints': "one of 'entries', 'balanced'"}),
+    'enroll_lda_prior': ('typical', "LDA class priors after a change: 'entries' (class shares "
+                                    "of the bank), 'balanced' (equal priors) or 'typical' "
+                                    '(default: built classes keep theirs, each enrolled class '
+                                    'gets their mean share).',
+                         {'additional_constraints': "one of 'entries', 'balanced', 'typical'"}),
     'enroll_vote_prior': (0.0, 'Class-size prior exponent beta of the kernel vote for classes '
                                'created by enrollment (bank/vote_prior.py): their vote is '
                                'scaled by (mean built-class entries / their entries)^beta; '
-                               '0 = the plain vote (default). Train CV for instances taught '
-                               'from 5 scans: 1.2 with enroll_lda_prior balanced (README, '
-                               'issue 12).',
+                               '0 = the plain vote (default; train CV picks 0 beside '
+                               'enroll_lda_debias, README issue 12).',
                           {'floating_point_range': [FloatingPointRange(
                               from_value=0.0, to_value=MAX_VOTE_PRIOR, step=0.0)]}),
-    'enroll_lda_debias': (0.0, 'Share f of the mean-noise correction of a wide LDA (bank/lda.py '
+    'enroll_lda_debias': (2.0, 'Share f of the mean-noise correction of a wide LDA (bank/lda.py '
                                'lda_noise_trace) for classes created by enrollment: LDA bias += '
-                               'f tr(P Sigma) / (2 n); 0 = none (default); with '
-                               'enroll_steal_budget > 0, the most a class gets. Train CV for the '
-                               'shipped default: README, issue 12.',
+                               'f tr(P Sigma) / (2 n); 0 = none; with enroll_steal_budget > 0, '
+                               'the most a class gets. Default 2: the train-CV choice (README, '
+                               'issue 12).',
                           {'floating_point_range': [FloatingPointRange(
                               from_value=0.0, to_value=MAX_SHARE, step=0.0)]}),
-    'enroll_steal_budget': (0.0, 'Steal budget rho of each class created by enrollment '
-                                 '(bank/debias.py): it gets the largest share <= '
-                                 'enroll_lda_debias whose predicted share of built-class '
-                                 'examples called it stays <= rho; 0 = every such class gets '
-                                 'enroll_lda_debias (default).',
+    'enroll_steal_budget': (0.001, 'Steal budget rho of each class created by enrollment '
+                                   '(bank/debias.py): it gets the largest share <= '
+                                   'enroll_lda_debias whose predicted share of built-class '
+                                   'examples called it stays <= rho; 0 = every such class gets '
+                                   'enroll_lda_debias. Default 0.001: the train-CV choice.',
                             {'floating_point_range': [FloatingPointRange(
                                 from_value=0.0, to_value=MAX_BUDGET, step=0.0)]}),
     'enroll_augment': ('none', "Frames each example is stored in (core/augment.py): 'none', "
@@ -154,8 +155,9 @@ class Enrollment(ManagedEntity):
                       f'{", ".join(AUGMENTS)}')
             return TransitionCallbackReturn.FAILURE
         prior = self.values['enroll_lda_prior']
-        if prior not in ('entries', 'balanced'):
-            log.error(f'parameter enroll_lda_prior={prior!r} must be entries or balanced')
+        if prior not in LDA_PRIORS:
+            log.error(f'parameter enroll_lda_prior={prior!r} must be one of '
+                      f'{", ".join(LDA_PRIORS)}')
             return TransitionCallbackReturn.FAILURE
         policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'],
                              lda_prior=prior, vote_prior=float(self.values['enroll_vote_prior']),
