@@ -182,3 +182,29 @@ def test_two_sections_on_two_threads_give_the_one_thread_answer(monkeypatch) -> 
     for a, b in zip(two, one, strict=True):
         assert np.array_equal(a.probability, b.probability)
         assert np.array_equal(a.novelty, b.novelty) and np.array_equal(a.labels, b.labels)
+
+
+def test_the_helper_thread_is_kept_off_its_callers_cpu() -> None:
+    # woken on its caller's CPU, the helper waited behind the busy caller for up to a
+    # scheduler tick: each use pins it to the process's other CPUs
+    import os
+
+    from point_gn_ros.bank import helper as helper_mod
+
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else []
+    if len(cpus) < 2 or helper_mod._sched_getcpu is None:
+        pytest.skip('needs Linux (sched_getcpu, sched_setaffinity) and two usable CPUs')
+    seen: dict[int, set[int]] = {}
+
+    def caller(cpu: int) -> None:
+        os.sched_setaffinity(0, {cpu})          # this thread only: runs on `cpu` now
+        pool = helper_mod.helper_thread()
+        assert pool is not None
+        seen[cpu] = pool.submit(lambda: os.sched_getaffinity(0)).result()
+
+    for cpu in cpus[:2]:
+        th = threading.Thread(target=caller, args=(cpu,))
+        th.start()
+        th.join()
+    for cpu in cpus[:2]:
+        assert seen[cpu] == set(cpus) - {cpu}   # everywhere but where its caller runs

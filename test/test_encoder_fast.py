@@ -7,6 +7,7 @@ session and shared by the tests that need it.
 from __future__ import annotations
 
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -198,6 +199,45 @@ def test_lone_cloud_on_two_threads_is_bit_identical(real_clouds: np.ndarray) -> 
         PointGNEncoder(lone_threads=3)
 
 
+@pytest.mark.filterwarnings('ignore:.*multi-threaded.*fork:DeprecationWarning')
+def test_lone_clouds_from_several_threads_and_a_forked_child(real_clouds: np.ndarray) -> None:
+    # the process keeps one helper thread for lone clouds: callers racing for it (one gets
+    # it, the others run on their own thread) and a child forked after it started (which
+    # has no helper thread until it starts its own) must all get the one-thread answers
+    _kernels_or_skip()
+    cfg = EncoderConfig()
+    xyz = torch.from_numpy(np.stack([prepare(c, n=cfg.num_points) for c in real_clouds]))
+    expected = PointGNEncoder(cfg, lone_threads=1).encode(xyz)
+    two = PointGNEncoder(cfg, lone_threads=2)
+    two.encode(xyz[:1])                                   # the helper thread now runs
+    got: dict[tuple[int, int], torch.Tensor] = {}
+
+    def caller(t: int) -> None:
+        for rep in range(3):
+            for i in range(len(xyz)):
+                got[t, rep * len(xyz) + i] = two.encode(xyz[i:i + 1])
+
+    threads = [threading.Thread(target=caller, args=(t,)) for t in range(3)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert len(got) == 3 * 3 * len(xyz)
+    for (_, j), row in got.items():
+        assert torch.equal(row, expected[j % len(xyz):j % len(xyz) + 1])
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                          # the child: exit code = verdict
+        ok = all(torch.equal(two.encode(xyz[i:i + 1]), expected[i:i + 1])
+                 for i in range(len(xyz)))
+        os.write(write, b'1' if ok else b'0')
+        os._exit(0)
+    os.close(write)
+    _, status = os.waitpid(pid, 0)
+    assert os.read(read, 1) == b'1' and os.waitstatus_to_exitcode(status) == 0
+    os.close(read)
+
+
 def test_simd_build_matches_the_cpu() -> None:
     # the stage loops are chosen at build time by what -march=native enables: AVX-512
     # (16 lanes), AVX2 + FMA (8 lanes, CPUs without AVX-512) or portable C
@@ -232,3 +272,35 @@ def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.n
         xyz = torch.from_numpy(np.stack([prepare(c, n=cfg.num_points) for c in real_clouds[:2]]))
         _assert_close(PointGNEncoder(cfg).encode(xyz).numpy(),
                       NaiveEncoder(cfg).encode(xyz).numpy(), f'avx2 init_dim {init_dim}')
+
+
+def test_the_lone_cloud_helper_is_kept_off_its_callers_cpu(real_clouds: np.ndarray) -> None:
+    # woken on its caller's CPU, the helper waited behind the busy caller for up to a
+    # scheduler tick (~3 ms): each lone cloud pins it to the process's other CPUs
+    _kernels_or_skip()
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else []
+    if len(cpus) < 2 or not Path('/proc/self/task').is_dir():
+        pytest.skip('needs Linux (/proc, sched_setaffinity) and two usable CPUs')
+    cfg = EncoderConfig()
+    xyz = torch.from_numpy(prepare(real_clouds[0], n=cfg.num_points)[None])
+    two = PointGNEncoder(cfg, lone_threads=2)
+
+    def helper_cpus() -> set[int]:
+        for task in Path('/proc/self/task').iterdir():
+            if (task / 'comm').read_text().strip() == 'pgn_lone':
+                return os.sched_getaffinity(int(task.name))
+        raise AssertionError('no pgn_lone thread')
+
+    seen = {}
+
+    def caller(cpu: int) -> None:
+        os.sched_setaffinity(0, {cpu})              # this thread only: runs on `cpu` now
+        two.encode(xyz)
+        seen[cpu] = helper_cpus()
+
+    for cpu in cpus[:2]:
+        th = threading.Thread(target=caller, args=(cpu,))
+        th.start()
+        th.join()
+    for cpu in cpus[:2]:
+        assert seen[cpu] == set(cpus) - {cpu}

@@ -15,8 +15,8 @@ pgn_geom.c and pgn_project.c are compiled without fast-math and with -ffp-contra
 on the rows beside it); the stage files (pgn_stage.c, pgn_avx512.c, pgn_avx2.c,
 pgn_avx2_d18.c, pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's
 libmvec); pgn_dots.c (the exact vote's cosines) without fast-math and with -ffp-contract=off,
-so that a dot's summation order is its source's in any batch; pgn_peak.c (roofline
-micro-benchmarks) without fast-math. The link step omits -ffast-math so that gcc does not
+so that a dot's summation order is its source's in any batch; pgn_lone.c (a lone cloud's
+helper thread) and pgn_peak.c (roofline micro-benchmarks) without fast-math. The link step omits -ffast-math so that gcc does not
 add crtfastmath.o, which would flush denormals to zero process-wide.
 """
 
@@ -42,13 +42,16 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_avx2.c': ['-ffast-math'],  # AVX2 + FMA stage loops (CPUs without AVX-512)
             'pgn_avx2_d18.c': ['-ffast-math'],  # AVX2 stage 1 with derived Gaussians
             'pgn_encode.c': ['-ffast-math'],
+            # a lone cloud's helper thread (no arithmetic: the chunks run in pgn_encode.c)
+            'pgn_lone.c': ['-fno-fast-math'],
             'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
             # the exact vote's dot products: one summation order in any batch
             'pgn_dots.c': ['-fno-fast-math', '-ffp-contract=off'],
             # the index's projection: row results must not depend on the batch
             'pgn_project.c': ['-fno-fast-math', '-ffp-contract=off'],
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
-_HEADERS = ('pgn_common.h',)  # included by the stage files: part of the snapshot and key
+# included by the C files: part of the snapshot and the cache key
+_HEADERS = ('pgn_common.h', 'pgn_lone.h')
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
 ABI_VERSION = 1
 _log = logging.getLogger(__name__)

@@ -4,11 +4,8 @@
  * whatever the batch or thread, so batches are invariant; a lone cloud may share its
  * stages with a helper thread (pgn_encode_lone), bit-identically.
  */
-#include <pthread.h>
-#include <sched.h>
-#include <stdatomic.h>
-
 #include "pgn_common.h"
+#include "pgn_lone.h"
 
 void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
              int64_t m, int64_t *idx, float *min_d);
@@ -220,68 +217,15 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
                     j->pe[tid], j->PS, j->mx[tid], j->sm[tid], j->use_fx ? &j->fx[tid] : NULL);
 }
 
-typedef struct {
-    pthread_mutex_t mu;
-    pthread_cond_t cv;
-    int64_t gen;          /* job generation, under mu */
-    int quit;
-    agg_job *job;
-    _Atomic uint64_t next;  /* (generation << 32) | next unclaimed chunk */
-    _Atomic int64_t done;   /* chunks of the current job finished */
-} par_t;
-
-/* Claim and run chunks of job generation gen until none is left. */
-static void par_work(par_t *p, agg_job *job, uint64_t gen, int tid) {
-    for (;;) {
-        uint64_t v = atomic_load(&p->next);
-        if ((v >> 32) != gen || (int64_t)(v & 0xffffffffu) >= job->nchunks) return;
-        if (!atomic_compare_exchange_weak(&p->next, &v, v + 1)) continue;
-        agg_chunk(job, tid, (int64_t)(v & 0xffffffffu));
-        atomic_fetch_add(&p->done, 1);
-    }
-}
-
-static void *par_helper(void *arg) {
-    par_t *p = arg;
-    int64_t seen = 0;
-    pthread_mutex_lock(&p->mu);
-    for (;;) {
-        while (p->gen == seen && !p->quit) pthread_cond_wait(&p->cv, &p->mu);
-        if (p->quit) break;
-        seen = p->gen;
-        agg_job *job = p->job;
-        pthread_mutex_unlock(&p->mu);
-        par_work(p, job, (uint64_t)seen, 1);
-        pthread_mutex_lock(&p->mu);
-    }
-    pthread_mutex_unlock(&p->mu);
-    return NULL;
-}
-
-/* Run all chunks of job, with the helper when there is one. */
-static void par_run(par_t *p, agg_job *job) {
-    if (!p) {
-        for (int64_t i = 0; i < job->nchunks; ++i) agg_chunk(job, 0, i);
-        return;
-    }
-    pthread_mutex_lock(&p->mu);
-    const uint64_t gen = (uint64_t)++p->gen;
-    p->job = job;
-    atomic_store(&p->done, 0);
-    atomic_store(&p->next, gen << 32);
-    pthread_cond_signal(&p->cv);
-    pthread_mutex_unlock(&p->mu);
-    par_work(p, job, gen, 0);
-    for (int spin = 0; atomic_load(&p->done) < job->nchunks; ++spin)
-        if (spin > 64) sched_yield();  /* only chunks the helper is running are left */
-}
+/* agg_chunk as the lone runtime calls it. */
+static void agg_chunk_fn(void *job, int tid, int64_t chunk) { agg_chunk(job, tid, chunk); }
 
 /* Encode one cloud. xyz: (num_points, 3); cents: concatenated Gaussian centre
  * tables (init block of init_dim/3, then 2*D_i/3 per stage); out: (feature_dim,).
  * par: the helper thread's runtime for a lone cloud, or NULL.
  * Returns 0, or -1 when out of memory. */
 static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cents, float *out,
-                      par_t *par) {
+                      pgn_par *par) {
     TIC(11);
     const int64_t N = cfg->num_points, D0 = cfg->init_dim;
     const float q = -0.5f / (cfg->sigma * cfg->sigma);
@@ -370,7 +314,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             kj.dist[0] = scratch; kj.dist[1] = scratch2;
             kj.keys[0] = keys; kj.keys[1] = keys2;
             kj.tail[0] = tails; kj.tail[1] = tails + K1 + 16;
-            par_run(par, &kj);
+            pgn_par_run(par, agg_chunk_fn, &kj, kj.nchunks);
         } else {
             pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys);
         }
@@ -430,7 +374,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             sj.nchunks = S < 16 ? S : 16;
             sj.mx[0] = mx; sj.sm[0] = sm; sj.mx[1] = vec2; sj.sm[1] = vec2 + VS;
             sj.part = parts;
-            par_run(par, &sj);
+            pgn_par_run(par, agg_chunk_fn, &sj, sj.nchunks);
             for (int64_t c = 0; c < S; ++c) { f1 += parts[2 * c]; f2 += parts[2 * c + 1]; }
         } else {
             for (int64_t c = 0; c < S; ++c) {
@@ -529,7 +473,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 #endif
         }
 #endif
-        par_run(par, &job);
+        pgn_par_run(par, agg_chunk_fn, &job, job.nchunks);
         TOC(4, 3 + st);
         TIC(9);
         cents += nc;
@@ -568,30 +512,16 @@ int pgn_encode(const float *xyz, int64_t count, int64_t num_points, int64_t init
     return 0;
 }
 
-/* One cloud on the calling thread plus a helper thread (started and joined here: ~50 us)
- * that shares the aggregation; bit-identical to pgn_encode. Falls back to one thread
- * when the helper cannot start. Returns 0, or -1 when out of memory. */
+/* One cloud on the calling thread plus the process's helper thread (pgn_lone.c), which
+ * shares the kNN, std and aggregation steps; bit-identical to pgn_encode. Runs on one
+ * thread when another caller has the helper or no helper can start. Returns 0, or -1 when
+ * out of memory. */
 int pgn_encode_lone(const float *xyz, int64_t num_points, int64_t init_dim, int64_t stages,
                     int64_t k, float sigma, const float *cents, int64_t feature_dim, float *out) {
     (void)feature_dim;
     pgn_cfg cfg = {num_points, init_dim, stages, k, sigma};
-    par_t p;
-    memset(&p, 0, sizeof(p));
-    pthread_mutex_init(&p.mu, NULL);
-    pthread_cond_init(&p.cv, NULL);
-    atomic_init(&p.next, 0);
-    atomic_init(&p.done, 0);
-    pthread_t th;
-    const int started = pthread_create(&th, NULL, par_helper, &p) == 0;
-    const int rc = encode_one(xyz, &cfg, cents, out, started ? &p : NULL);
-    if (started) {
-        pthread_mutex_lock(&p.mu);
-        p.quit = 1;
-        pthread_cond_signal(&p.cv);
-        pthread_mutex_unlock(&p.mu);
-        pthread_join(th, NULL);
-    }
-    pthread_cond_destroy(&p.cv);
-    pthread_mutex_destroy(&p.mu);
+    pgn_par *par = pgn_par_begin();
+    const int rc = encode_one(xyz, &cfg, cents, out, par);
+    pgn_par_end(par);
     return rc;
 }
