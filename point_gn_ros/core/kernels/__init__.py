@@ -16,8 +16,9 @@ on the rows beside it); the stage files (pgn_stage.c, pgn_avx512.c, pgn_avx2.c,
 pgn_avx2_d18.c, pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's
 libmvec); pgn_dots.c (the exact vote's cosines) without fast-math and with -ffp-contract=off,
 so that a dot's summation order is its source's in any batch; pgn_lone.c (a lone cloud's
-helper thread) and pgn_peak.c (roofline micro-benchmarks) without fast-math. The link step omits -ffast-math so that gcc does not
-add crtfastmath.o, which would flush denormals to zero process-wide.
+helper thread) and pgn_peak.c (roofline micro-benchmarks) without fast-math. The link step
+omits -ffast-math so that gcc does not add crtfastmath.o, which would flush denormals to
+zero process-wide.
 """
 
 from __future__ import annotations

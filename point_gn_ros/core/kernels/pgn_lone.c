@@ -180,9 +180,19 @@ static void keep_away(void) {
 #endif
 }
 
+/* Whether this process may run on one CPU only (read when the helper started). */
+static int one_cpu(void) {
+#ifdef __linux__
+    return CPU_COUNT(&rt.allowed) == 1;
+#else
+    return 0;
+#endif
+}
+
 pgn_par *pgn_par_begin(void) {
     if (atomic_exchange(&busy, 1)) return NULL;
-    if (!started()) {
+    /* On one usable CPU a polling helper would only take turns with its caller. */
+    if (!started() || one_cpu()) {
         atomic_store(&busy, 0);
         return NULL;
     }
