@@ -9,7 +9,7 @@ never used from the helper thread itself (one worker: it would wait for itself).
 Each use keeps the helper off the caller's CPU (Linux): woken after an idle gap, it was
 queued behind its busy caller on the same CPU for up to a scheduler tick (p90 1.2 ms after
 33 ms gaps, against ~50 us back to back) while the other CPU idled. The encoder's helper
-for a lone cloud does the same (core/kernels/pgn_encode.c `keep_away`).
+for a lone cloud does the same (core/kernels/pgn_lone.c `keep_away`).
 """
 
 from __future__ import annotations
@@ -29,14 +29,6 @@ _cpus: set[int] = set()          # the CPUs this process may use (when the helpe
 _away_from = -1                  # the CPU the helper was last kept off
 
 
-def _current_cpu() -> int:
-    """The CPU this thread runs on, or -1 where that cannot be asked."""
-    try:
-        return int(_sched_getcpu())
-    except (AttributeError, OSError):
-        return -1
-
-
 try:
     _sched_getcpu = ctypes.CDLL(None).sched_getcpu
     _sched_getcpu.restype = ctypes.c_int
@@ -50,7 +42,7 @@ def _keep_away() -> None:
     global _away_from
     if _tid is None or _sched_getcpu is None:
         return
-    cpu = _current_cpu()
+    cpu = _sched_getcpu()   # -1 on failure
     if cpu < 0 or cpu == _away_from or cpu not in _cpus or len(_cpus) < 2:
         return
     try:
