@@ -116,5 +116,7 @@ def test_a_section_the_gate_all_but_excludes_is_not_searched(three_class_tree: P
         pc, nc = clf._section(feats)
         pv, nv = section(feats)
     g = p_scan[:, None]
-    torch.testing.assert_close(prob, (1 - g) * pc + g * pv, atol=2e-6, rtol=0)
+    # The skip moves a probability by < 1e-6; the sections' GEMMs round by the batch's shape
+    # (a subset here, all rows there): up to 7e-6 apart with 2 MKL threads on Intel CPUs.
+    torch.testing.assert_close(prob, (1 - g) * pc + g * pv, atol=2e-5, rtol=0)
     torch.testing.assert_close(novelty, (1 - p_scan) * nc + p_scan * nv, atol=4e-6, rtol=0)

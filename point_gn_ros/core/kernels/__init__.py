@@ -15,7 +15,8 @@ pgn_geom.c and pgn_project.c are compiled without fast-math and with -ffp-contra
 on the rows beside it); the stage files (pgn_stage.c, pgn_avx512.c, pgn_avx2.c,
 pgn_avx2_d18.c, pgn_encode.c) and pgn_search.c with -ffast-math (vectorised code, glibc's
 libmvec); pgn_dots.c (the exact vote's cosines) without fast-math and with -ffp-contract=off,
-so that a dot's summation order is its source's in any batch; pgn_lone.c (a lone cloud's
+so that a dot's summation order is its source's in any batch; pgn_head.c (a lone query's
+head, bank/lone.py: -inf marks absent classes) without fast-math; pgn_lone.c (a lone cloud's
 helper thread) and pgn_peak.c (roofline micro-benchmarks) without fast-math. The link step
 omits -ffast-math so that gcc does not add crtfastmath.o, which would flush denormals to
 zero process-wide.
@@ -50,6 +51,8 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_dots.c': ['-fno-fast-math', '-ffp-contract=off'],
             # the index's projection: row results must not depend on the batch
             'pgn_project.c': ['-fno-fast-math', '-ffp-contract=off'],
+            # a lone query through a section's head: -inf marks absent classes
+            'pgn_head.c': ['-fno-fast-math'],
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
 # included by the C files: part of the snapshot and the cache key
 _HEADERS = ('pgn_common.h', 'pgn_lone.h')
@@ -233,6 +236,14 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_dots_i8.argtypes = [p, p, i64, i64, p, i64, p]
     lib.pgn_project_f32.restype = None
     lib.pgn_project_f32.argtypes = [p, i64, i64, p, i64, p]
+    f64 = ctypes.c_double
+    lib.pgn_head_embed.restype = None
+    lib.pgn_head_embed.argtypes = [p, i64, p, p, p, i64, p, p, p, p]
+    lib.pgn_head_linear.restype = None
+    lib.pgn_head_linear.argtypes = [p, i64, p, i64, p, p]
+    lib.pgn_head_finish.restype = ctypes.c_int
+    lib.pgn_head_finish.argtypes = [p, p, i64, i64, p, f64, p, f64, f64, p, p, i64, p, p,
+                                    f64, f64, p, p, p]
 
 
 def load() -> ctypes.CDLL | None:
