@@ -4,7 +4,7 @@
 usage: scripts/search_agreement.py [--bank BANK] [--data DIR] [--split test]
        [--cache DIR] [--random-yaw SEED | --single-view --seed S]
        [--candidates 256 512 1024] [--coarse-dims 128 256] [--replicate R --jitter S]
-       [--section complete|views]
+       [--section complete|views] [--code-bits 4 8]
 
 Encodes the split as `point_gn eval` does (complete objects, --random-yaw, or one
 --single-view scan per object; cached with --cache), then classifies it through the
@@ -16,6 +16,7 @@ the index build time (process CPU) and the thread CPU time of a lone query (medi
 on one thread).
 --section views indexes a two-section bank's scan section instead of its complete section
 (the classifier then mixes both by the gate, as the node does).
+--code-bits: the coarse codes' widths to try (default: COARSE_BITS).
 --replicate R stands in for a large real bank: R copies of every entry, each copy but the
 first with Gaussian noise of std S per coordinate, renormalised (R = 10: 98,430 entries).
 """
@@ -33,7 +34,7 @@ import torch
 from point_gn_ros.bank.builder import encode_dataset
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.lone import LoneSection
-from point_gn_ros.bank.search import CANDIDATES, IndexedSearch
+from point_gn_ros.bank.search import CANDIDATES, COARSE_BITS, IndexedSearch
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset
@@ -82,6 +83,7 @@ def main() -> None:
     ap.add_argument('--lone', type=int, default=200, help='lone queries timed')
     ap.add_argument('--section', choices=('complete', 'views'), default='complete',
                     help="the section searched by the index (a two-section bank's 'views')")
+    ap.add_argument('--code-bits', type=int, nargs='+', choices=(4, 8), default=[COARSE_BITS])
     args = ap.parse_args()
     torch.set_num_threads(1)
 
@@ -101,33 +103,37 @@ def main() -> None:
     exact = Classifier(bank, search='exact')
     if args.section == 'views' and exact.views is None:
         raise SystemExit('--section views needs a two-section bank')
+    if args.replicate > 1 and exact.head.has_ridge:
+        raise SystemExit('--replicate: the complete section has a kernel ridge term (a '
+                         'coefficient per entry), which copies of the entries cannot share')
     p_ex, nov_ex = exact.evaluate(feats)
     lab_ex = p_ex.argmax(1).numpy()
     print(f'{len(feats)} {args.split} {what} against {Path(bank.path).name} '
           f'({len(bank.labels)} x {bank.features.shape[1]}, gamma {bank.gamma:g}); exact '
           f'search: accuracy {100 * (lab_ex == true).mean():.2f} %, lone query '
           f'{lone_query_ms(exact, feats, args.lone):.2f} ms CPU')
-    print('| coarse dims | candidates | coarse energy | build s CPU | labels differing | '
+    print('| coarse dims | bits | candidates | coarse energy | build s CPU | labels differing | '
           'accuracy | max prob. diff (p99 of queries) | max novelty diff | '
-          'lone query ms CPU |\n|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
-    for dims in args.coarse_dims:
-        for m in args.candidates:
-            clf = Classifier(bank, search='exact')
-            sec = clf.views if args.section == 'views' else clf
-            t0 = time.process_time()      # numpy's BLAS may use more than this thread
-            sec.search = IndexedSearch(sec.features, sec.labels, sec.bank.num_classes,
-                                       coarse_dims=dims or None, candidates=m)
-            build = time.process_time() - t0
-            sec.lone = LoneSection.build(sec)             # the lone path reads the search
-            p, nov = clf.evaluate(feats)
-            lab = p.argmax(1).numpy()
-            index = sec.search.index
-            print(f'| {index.coarse_dims} | {m} | {index.coarse_energy:.2f} | {build:.2f} | '
-                  f'{int((lab != lab_ex).sum())} of {len(lab)} | '
-                  f'{100 * (lab == true).mean():.2f} % | {float((p - p_ex).abs().max()):.2g} '
-                  f'({float(np.percentile((p - p_ex).abs().amax(1).numpy(), 99)):.2g}) | '
-                  f'{float((nov - nov_ex).abs().max()):.2g} | '
-                  f'{lone_query_ms(clf, feats, args.lone):.2f} |', flush=True)
+          'lone query ms CPU |\n|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+    for dims, bits, m in ((d, b, m) for d in args.coarse_dims for b in args.code_bits
+                          for m in args.candidates):
+        clf = Classifier(bank, search='exact')
+        sec = clf.views if args.section == 'views' else clf
+        t0 = time.process_time()      # numpy's BLAS may use more than this thread
+        sec.search = IndexedSearch(sec.features, sec.labels, sec.bank.num_classes,
+                                   coarse_dims=dims or None, candidates=m,
+                                   code_bits=bits)
+        build = time.process_time() - t0
+        sec.lone = LoneSection.build(sec)             # the lone path reads the search
+        p, nov = clf.evaluate(feats)
+        lab = p.argmax(1).numpy()
+        index = sec.search.index
+        print(f'| {index.coarse_dims} | {bits} | {m} | {index.coarse_energy:.2f} | {build:.2f} | '
+              f'{int((lab != lab_ex).sum())} of {len(lab)} | '
+              f'{100 * (lab == true).mean():.2f} % | {float((p - p_ex).abs().max()):.2g} '
+              f'({float(np.percentile((p - p_ex).abs().amax(1).numpy(), 99)):.2g}) | '
+              f'{float((nov - nov_ex).abs().max()):.2g} | '
+              f'{lone_query_ms(clf, feats, args.lone):.2f} |', flush=True)
 
 
 if __name__ == '__main__':

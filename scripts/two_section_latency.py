@@ -4,8 +4,11 @@
 whose gate needs both sections; with and without the helper thread that evaluates the scan
 section (bank/classifier.py). `--case scans`: simulated single-view scans the gate sends to
 the scan section alone; with and without the coarse pass split over the helper thread
-(bank/search.py, `SPLIT_MIN_ROWS`). Interleaved passes, wall and process CPU time, one torch
-thread, and whether the answers are identical.
+(bank/search.py, `SPLIT_MIN_ROWS`). `--compare bits` instead compares the scan section's
+index at 4-bit and 8-bit coarse codes (bank/index_basis.py `COARSE_BITS`), both with the
+helper thread. `--gap-ms G` idles G ms before each query, as between a sensor's objects.
+Interleaved passes, wall and process CPU time, one torch thread, and whether the answers
+are identical.
 """
 
 from __future__ import annotations
@@ -21,10 +24,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--case', choices=('both', 'scans'), default='both')
     ap.add_argument('--passes', type=int, default=30)
+    ap.add_argument('--compare', choices=('helper', 'bits'), default='helper')
+    ap.add_argument('--gap-ms', type=float, default=0.0)
     args = ap.parse_args()
     torch.set_num_threads(1)
     import point_gn_ros.bank.classifier as clf_mod
     import point_gn_ros.bank.search as search_mod
+    from point_gn_ros.bank.lone import LoneSection
+    from point_gn_ros.bank.search import IndexedSearch
     from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
     from point_gn_ros.recognizer import Recognizer
 
@@ -38,17 +45,31 @@ def main() -> None:
     queries = feats[p >= 1 - skip] if scans else feats[(p > skip) & (p < 1 - skip)]
     print(f'{len(queries)} of {len(feats)} objects in this case')
     helper, split = clf_mod.helper_thread, search_mod.SPLIT_MIN_ROWS
-    modes = ('helper thread', 'one thread')
+    views = rec.classifier.views
+    if args.compare == 'bits':
+        modes = ('4-bit codes', '8-bit codes')
+        searches = {}
+        for mode, bits in zip(modes, (4, 8), strict=True):
+            views.search = IndexedSearch(views.features, views.labels, views.bank.num_classes,
+                                         code_bits=bits)
+            searches[mode] = (views.search, LoneSection.build(views))
+    else:
+        modes = ('helper thread', 'one thread')
     times: dict[str, list[float]] = {m: [] for m in modes}
     cpu = dict.fromkeys(modes, 0.0)
     answers: dict[tuple[str, int], np.ndarray] = {}
     for _ in range(args.passes):
         for mode in modes:
-            on = mode == 'helper thread'
-            clf_mod.helper_thread = helper if on else (lambda: None)
-            search_mod.SPLIT_MIN_ROWS = split if on else 1 << 62
+            if args.compare == 'bits':
+                views.search, views.lone = searches[mode]
+            else:
+                on = mode == 'helper thread'
+                clf_mod.helper_thread = helper if on else (lambda: None)
+                search_mod.SPLIT_MIN_ROWS = split if on else 1 << 62
             c0 = time.process_time()
             for i in range(len(queries)):
+                if args.gap_ms:
+                    time.sleep(args.gap_ms / 1e3)
                 t0 = time.perf_counter()
                 out = rec.classifier.classify(queries[i:i + 1])
                 times[mode].append(time.perf_counter() - t0)
@@ -61,6 +82,10 @@ def main() -> None:
     same = all(np.array_equal(answers[(modes[0], i)], answers[(modes[1], i)])
                for i in range(len(queries)))
     print('identical answers:', same)
+    if args.compare == 'bits':      # other codes may pick other candidates: how far apart
+        a, b = (np.stack([answers[(m, i)] for i in range(len(queries))]) for m in modes)
+        print(f'labels differing: {int((a.argmax(1) != b.argmax(1)).sum())} of {len(a)}, '
+              f'max probability difference {float(np.abs(a - b).max()):.2g}')
 
 
 if __name__ == '__main__':

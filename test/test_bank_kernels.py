@@ -79,9 +79,11 @@ def test_scan_i8_multi_equals_one_query_at_a_time(lib, r: int) -> None:
             assert np.array_equal(one, codes.astype(np.int32) @ q[b].astype(np.int32))
 
 
-def test_candidates_of_a_batch_are_each_querys_own(monkeypatch) -> None:
+@pytest.mark.parametrize('bits', [4, 8])
+def test_candidates_of_a_batch_are_each_querys_own(monkeypatch, bits: int) -> None:
     feats, labels = synthetic_bank(5_000, 128, seed=5, classes=12)
-    index = BankIndex(feats, labels, 12, candidates=300)
+    index = BankIndex(feats, labels, 12, candidates=300, code_bits=bits)
+    assert index.code_bits == bits and index.codes.nbytes == 5_000 * index.coarse_dims * bits // 8
     q = _unit(np.random.default_rng(6), 7, 128)
     many = index.candidates_many(q)
     assert many.shape == (7, 300)
@@ -111,7 +113,7 @@ def test_candidates_of_a_batch_are_each_querys_own(monkeypatch) -> None:
     index._lib = kernels.load()
     # and the search's votes: a query's row is the same alone and in the batch
     search = IndexedSearch(torch.from_numpy(feats), torch.from_numpy(labels), 12,
-                           candidates=300)
+                           candidates=300, code_bits=bits)
     logv, best = search.log_votes(torch.from_numpy(q), 60.0)
     for b in range(len(q)):
         lv1, b1 = search.log_votes(torch.from_numpy(q[b:b + 1]), 60.0)

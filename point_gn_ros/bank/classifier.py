@@ -25,7 +25,7 @@ path: the same formulas in a few C calls instead of ~40 torch ops, which after a
 idle gap each started cold. Batches take the torch path.
 
 Search (`search=`): 'exact' compares every query with every bank entry (torch);
-'indexed' uses bank/search.py's two-stage search (int8 coarse scan, exact rescoring of
+'indexed' uses bank/search.py's two-stage search (4-bit coarse scan, exact rescoring of
 the best candidates, each query alone), built once per Classifier; 'auto' (default)
 picks 'indexed' for banks of at least `INDEX_MIN_ENTRIES` entries on the CPU, where a
 lone query would otherwise read the whole bank.

@@ -1,9 +1,10 @@
-"""The coarse coordinates of bank/search.py's int8 index: principal axes and int8 scales.
+"""The coarse coordinates of bank/search.py's index: principal axes and integer scales.
 
 IndexBasis rotates vote-space rows onto the bank's leading principal axes (an orthogonal
-rotation: dot products unchanged) and keeps the leading coordinates as int8 codes; `_project`
-computes each row's coordinates independently of the rows beside it (pgn_project.c), so an
-index's appended codes equal a fresh build's.
+rotation: dot products unchanged) and keeps the leading coordinates as 4-bit (packed two a
+byte, `pack_codes`) or 8-bit integer codes; `_project` computes each row's coordinates
+independently of the rows beside it (pgn_project.c), so an index's appended codes equal a
+fresh build's.
 """
 
 from __future__ import annotations
@@ -17,6 +18,12 @@ import torch
 # bank's energy: 128 of 512 for issue 13's synthetic bank, 192 of 224 for the whitened
 # sensor bank, 512 of 640 for the shipped (whitened) one (BENCHMARKS.md "Large banks").
 COARSE_ENERGY = 0.9
+# Bits a coarse code: 4 (codes in [-7, 7], half the bytes of 8) or 8 ([-127, 127]). On the
+# shipped scan section (288 of 320 dims) 4 bits kept 8 bits' fidelity against the exact
+# search (0 of 9,843 train and 0 of 4,936 test labels differ), and its coarse pass after
+# idle time takes 1.0 ms instead of 1.7-1.8 (BENCHMARKS.md, "Third session of 2026-12-03").
+COARSE_BITS = 4
+_CODE_TOP = {4: 7, 8: 127}      # bits -> the largest |code|
 # Rows used to find the principal axes (a sample: the rotation only steers the coarse
 # pass, the rescoring is exact whatever it is).
 _PCA_ROWS = 20_000
@@ -25,20 +32,24 @@ _BLOCK_ROWS = 8192
 
 
 class IndexBasis:
-    """The coarse pass's coordinates: the bank's leading principal axes, int8 scales.
+    """The coarse pass's coordinates: the bank's leading principal axes, integer scales.
 
     rotation (d, r) float32 orthonormal columns; scale (r,) float32 per coordinate (a
-    coordinate's largest |value| over the rows it was fitted on maps to 127); energy: share
-    of those rows' squared norms on the r coordinates; rows: how many rows it was fitted on.
+    coordinate's largest |value| over the rows it was fitted on maps to the largest code,
+    7 or 127); energy: share of those rows' squared norms on the r coordinates; rows: how
+    many rows it was fitted on; bits: 4 or 8 a code.
     """
 
-    def __init__(self, rotation: np.ndarray, scale: np.ndarray, energy: float, rows: int
-                 ) -> None:
+    def __init__(self, rotation: np.ndarray, scale: np.ndarray, energy: float, rows: int,
+                 bits: int = COARSE_BITS) -> None:
+        if bits not in _CODE_TOP:
+            raise ValueError(f'coarse codes have 4 or 8 bits, got {bits}')
         self.rotation, self.scale, self.energy, self.rows = rotation, scale, energy, rows
+        self.bits = bits
 
     @classmethod
-    def fit(cls, feats: np.ndarray, coarse_dims: int | None, lib: Any
-            ) -> tuple['IndexBasis', np.ndarray]:
+    def fit(cls, feats: np.ndarray, coarse_dims: int | None, lib: Any,
+            bits: int = COARSE_BITS) -> tuple['IndexBasis', np.ndarray]:
         """Fit on feats (N, d) float32 -> (basis, the rows' coordinates (N, r) float32)."""
         n, d = feats.shape
         # Principal axes of the (uncentred) second moment: they carry the most of every
@@ -58,27 +69,68 @@ class IndexBasis:
         # the better the coarse pass ranks (issue 13's 512-d bank, 128 coords: 0.93)
         energy = float(evals[order].sum() / evals.sum().clamp_min(1e-30))
         z = _project(feats, rotation, lib)
-        scale = np.maximum(np.abs(z).max(axis=0), 1e-12) / 127.0          # (r,)
-        return cls(rotation, scale, energy, n), z
+        scale = np.maximum(np.abs(z).max(axis=0), 1e-12) / _CODE_TOP[bits]    # (r,)
+        return cls(rotation, scale, energy, n, bits), z
+
+    @property
+    def dims(self) -> int:
+        return int(self.rotation.shape[1])
 
     def quantize(self, z: np.ndarray) -> np.ndarray:
-        """Coordinates (M, r) float32 -> int8 codes (M, r), saturated at +-127.
+        """Coordinates (M, r) float32 -> stored codes, saturated at the largest code.
 
-        In blocks of rows: a large bank's float temporaries stay small.
+        (M, r) int8 at 8 bits, (M, r / 2) uint8 (`pack_codes`) at 4. In blocks of rows: a
+        large bank's float temporaries stay small.
         """
-        out = np.empty(z.shape, np.int8)
+        top, r = _CODE_TOP[self.bits], z.shape[1]
+        out = np.empty((len(z), r if self.bits == 8 else r // 2), np.int8 if self.bits == 8
+                       else np.uint8)
         for i in range(0, len(z), _BLOCK_ROWS):
             blk = z[i:i + _BLOCK_ROWS] / self.scale
             np.rint(blk, out=blk)
-            out[i:i + _BLOCK_ROWS] = np.clip(blk, -127, 127, out=blk)
+            codes = np.clip(blk, -top, top, out=blk).astype(np.int8)
+            out[i:i + _BLOCK_ROWS] = pack_codes(codes) if self.bits == 4 else codes
         return out
 
+    def unpacked(self, codes: np.ndarray) -> np.ndarray:
+        """Stored codes -> (M, r) int8 code values (no copy at 8 bits)."""
+        return unpack_codes(codes, self.dims) if self.bits == 4 else codes
+
     def encode(self, feats: np.ndarray, lib: Any) -> np.ndarray:
-        """Rows (M, d) float32 -> int8 codes (M, r); row by row the same in any batch."""
+        """Rows (M, d) float32 -> stored codes (see quantize); the same rows in any batch."""
         if len(feats) <= _BLOCK_ROWS:
             return self.quantize(_project(feats, self.rotation, lib))
         return np.concatenate([self.encode(feats[i:i + _BLOCK_ROWS], lib)
                                for i in range(0, len(feats), _BLOCK_ROWS)])
+
+
+# Packed 4-bit rows, in chunks of up to 64 bytes: in a chunk of L bytes starting at byte
+# b, byte b + t holds code 2b + t in its low 4 bits and code 2b + L + t in its high ones, each
+# + 8. So a chunk's two halves meet contiguous slices of the query (core/kernels/pgn_scan4.c).
+_PACK_CHUNK = 64
+
+
+def pack_codes(codes: np.ndarray) -> np.ndarray:
+    """(M, r) int8 codes in [-8, 7], r a multiple of 32 -> (M, r / 2) uint8 packed rows."""
+    m, r = codes.shape
+    if r % 32:
+        raise ValueError(f'4-bit codes need a multiple of 32 a row, got {r}')
+    u = (codes.astype(np.int16) + 8).astype(np.uint8)
+    out, p = np.empty((m, r // 2), np.uint8), r // 2
+    for b in range(0, p, _PACK_CHUNK):
+        n = min(_PACK_CHUNK, p - b)
+        out[:, b:b + n] = u[:, 2 * b:2 * b + n] | (u[:, 2 * b + n:2 * b + 2 * n] << 4)
+    return out
+
+
+def unpack_codes(packed: np.ndarray, dims: int) -> np.ndarray:
+    """pack_codes's inverse: (M, dims / 2) uint8 -> (M, dims) int8."""
+    out, p = np.empty((packed.shape[0], dims), np.int8), dims // 2
+    for b in range(0, p, _PACK_CHUNK):
+        n = min(_PACK_CHUNK, p - b)
+        out[:, 2 * b:2 * b + n] = (packed[:, b:b + n] & 15).astype(np.int8) - 8
+        out[:, 2 * b + n:2 * b + 2 * n] = (packed[:, b:b + n] >> 4).astype(np.int8) - 8
+    return out
 
 
 def _project(feats: np.ndarray, rotation: np.ndarray, lib: Any) -> np.ndarray:

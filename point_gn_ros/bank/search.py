@@ -1,4 +1,4 @@
-"""Two-stage search for large banks: an int8 coarse scan, then exact rescoring.
+"""Two-stage search for large banks: a coarse scan of integer codes, then exact rescoring.
 
 The kernel vote of a query, sum over entries of exp(-gamma (1 - cos)) per class, is
 dominated by the nearest entries at the gammas the banks use (40-200): an entry 0.1
@@ -7,9 +7,10 @@ against a float32 bank must read the whole bank (100k x 512 x 4 B = 205 MB: ~7 m
 this core's ~28 GB/s). Instead:
 
 1. coarse pass: the bank rotated onto its principal axes (an orthogonal rotation, so
-   dot products are unchanged), the leading `coarse_dims` coordinates kept as int8 (a
-   scale per coordinate; as many as hold 90 % of the bank's energy); one int32 dot
-   product per entry reads a quarter of the bytes per coordinate kept;
+   dot products are unchanged), the leading `coarse_dims` coordinates kept as 4-bit codes
+   (8 with `code_bits=8`; a scale per coordinate; as many coordinates as hold 90 % of the
+   bank's energy); one int32 dot product per entry with the query's int8 codes reads an
+   eighth of the bytes per coordinate kept (pgn_scan4.c; pgn_search.c at 8 bits);
 2. the `candidates` best coarse scores are rescored exactly (float32, the full rows);
 3. votes come from those candidates only; every other entry's vote counts as 0
    (`BankIndex.scores`) or as the classifier's floor exp(-80) (`IndexedSearch`).
@@ -39,7 +40,8 @@ import torch
 from point_gn_ros.bank.head import _LOGIT_FLOOR, _TINY
 from point_gn_ros.bank.helper import helper_thread
 # The coarse coordinates (re-exported: scripts and tests import them from here).
-from point_gn_ros.bank.index_basis import COARSE_ENERGY, IndexBasis, _project  # noqa: F401
+from point_gn_ros.bank.index_basis import (COARSE_BITS, COARSE_ENERGY, IndexBasis,  # noqa: F401
+                                           _project)
 from point_gn_ros.core import kernels
 from point_gn_ros.core.encoder import spare_cpu
 
@@ -96,24 +98,25 @@ class BankIndex:
     """Two-stage search over a bank's (transformed, unit-row) features.
 
     features: (N, d) float32 unit rows; labels: (N,) int class ids in [0, num_classes);
-    coarse_dims: int8 coordinates per entry in the coarse pass (a multiple of 32, <= d;
-    None: the fewest holding `COARSE_ENERGY` of the bank's energy, so a flat spectrum, e.g.
-    a whitened vote space, keeps more); candidates: entries rescored exactly per query;
-    basis: the coarse coordinates to use (another index's, see `derive`; None: fitted on
-    these features). Memory: N x coarse_dims bytes beside the float32 features (kept by
-    reference when already float32 and C-contiguous).
+    coarse_dims: coordinates per entry in the coarse pass (a multiple of 32, <= d; None:
+    the fewest holding `COARSE_ENERGY` of the bank's energy, so a flat spectrum, e.g. a
+    whitened vote space, keeps more); candidates: entries rescored exactly per query;
+    code_bits: 4 or 8 bits a coarse code (`COARSE_BITS`); basis: the coarse coordinates to
+    use (another index's, see `derive`, with its code width; None: fitted on these
+    features). Memory: N x coarse_dims x code_bits / 8 bytes beside the float32 features
+    (kept by reference when already float32 and C-contiguous).
     """
 
     def __init__(self, features: np.ndarray, labels: np.ndarray, num_classes: int,
                  coarse_dims: int | None = None, candidates: int = CANDIDATES,
-                 basis: IndexBasis | None = None) -> None:
+                 basis: IndexBasis | None = None, code_bits: int = COARSE_BITS) -> None:
         feats, labels = _check_rows(features, labels, num_classes)
         self.features, self.labels, self.num_classes = feats, labels, int(num_classes)
         self.candidates = max(1, int(candidates))
         self._lib = kernels.load()
         self._local = threading.local()
         if basis is None:
-            self.basis, z = IndexBasis.fit(feats, coarse_dims, self._lib)
+            self.basis, z = IndexBasis.fit(feats, coarse_dims, self._lib, code_bits)
             self.codes = self.basis.quantize(z)
         else:
             self.basis = basis
@@ -182,14 +185,21 @@ class BankIndex:
 
     @property
     def coarse_dims(self) -> int:
-        return int(self.codes.shape[1])
+        return self.basis.dims
+
+    @property
+    def code_bits(self) -> int:
+        return self.basis.bits
 
     def candidates_for(self, q: np.ndarray) -> np.ndarray:
         """Coarse pass for one query q (d,) float32 -> (M,) int32 entry ids, unordered."""
         return self.candidates_many(q[None])[0]
 
     def _query_codes(self, q: np.ndarray) -> np.ndarray:
-        """Queries q (B, d) -> int8 codes (B, r), each from its own row alone."""
+        """Queries q (B, d) -> int8 codes (B, r), each from its own row alone.
+
+        8 bits whatever the bank's codes: the coarse score is bank codes . query codes.
+        """
         out = np.empty((q.shape[0], self.coarse_dims), np.int8)
         for b in range(q.shape[0]):
             qs = (q[b] @ self.rotation) * self.scale     # coarse score = codes @ qs
@@ -200,13 +210,13 @@ class BankIndex:
     def candidates_many(self, q: np.ndarray) -> np.ndarray:
         """Coarse pass for queries q (B, d) float32 -> (B, M) int32 entry ids, rows unordered.
 
-        One pass over the codes for the whole batch (pgn_scan_i8_multi: integer sums, so
-        each query's candidates are those of its own pass, in any batch).
+        One pass over the codes for the whole batch (pgn_scan_i4_multi / pgn_scan_i8_multi:
+        integer sums, so each query's candidates are those of its own pass, in any batch).
         """
         n, m = self.codes.shape[0], min(self.candidates, self.codes.shape[0])
         q8 = self._query_codes(q)
         if self._lib is None:  # no C compiler: the same pass in numpy
-            coarse = q8.astype(np.int32) @ self.codes.astype(np.int32).T
+            coarse = q8.astype(np.int32) @ self.basis.unpacked(self.codes).astype(np.int32).T
             order = np.argsort(-coarse, axis=1, kind='stable')[:, :m]
             return np.sort(order, axis=1).astype(np.int32)
         coarse, keys = self._scratch(len(q))
@@ -227,16 +237,17 @@ class BankIndex:
         two cores read faster. Integer sums: the same scores either way.
         """
         n, r, nq = self.codes.shape[0], self.coarse_dims, len(q8)
+        lib = self._lib
+        one, many = ((lib.pgn_scan_i4, lib.pgn_scan_i4_multi) if self.code_bits == 4 else
+                     (lib.pgn_scan_i8, lib.pgn_scan_i8_multi))
         helper = helper_thread() if nq == 1 and n >= SPLIT_MIN_ROWS and spare_cpu() else None
         if helper is None:
-            self._lib.pgn_scan_i8_multi(self.codes.ctypes.data, n, r, q8.ctypes.data, nq,
-                                        coarse.ctypes.data)
+            many(self.codes.ctypes.data, n, r, q8.ctypes.data, nq, coarse.ctypes.data)
             return
         h = n // 2
-        second = helper.submit(self._lib.pgn_scan_i8, self.codes[h:].ctypes.data, n - h, r,
-                               q8.ctypes.data, coarse[0, h:].ctypes.data)
-        self._lib.pgn_scan_i8(self.codes.ctypes.data, h, r, q8.ctypes.data,
-                              coarse.ctypes.data)
+        second = helper.submit(one, self.codes[h:].ctypes.data, n - h, r, q8.ctypes.data,
+                               coarse[0, h:].ctypes.data)
+        one(self.codes.ctypes.data, h, r, q8.ctypes.data, coarse.ctypes.data)
         second.result()
 
     def _scratch(self, batch: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -302,10 +313,11 @@ class IndexedSearch:
 
     def __init__(self, bank_u: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,
                  coarse_dims: int | None = None, candidates: int = CANDIDATES,
-                 basis: IndexBasis | None = None) -> None:
+                 basis: IndexBasis | None = None, code_bits: int = COARSE_BITS) -> None:
         self._adopt(BankIndex(bank_u.detach().cpu().float().numpy(),
                               bank_labels.detach().cpu().numpy(), num_classes,
-                              coarse_dims=coarse_dims, candidates=candidates, basis=basis))
+                              coarse_dims=coarse_dims, candidates=candidates, basis=basis,
+                              code_bits=code_bits))
         self.derived = False
 
     @classmethod
@@ -320,8 +332,8 @@ class IndexedSearch:
         u, y = bank_u.detach().cpu().float().numpy(), bank_labels.detach().cpu().numpy()
         index = previous.index.derive(u, y, num_classes)
         if index is None:
-            return cls(bank_u, bank_labels, num_classes,
-                       candidates=previous.index.candidates)
+            return cls(bank_u, bank_labels, num_classes, candidates=previous.index.candidates,
+                       code_bits=previous.index.code_bits)
         out = object.__new__(cls)
         out._adopt(index)
         out.derived = True

@@ -93,7 +93,7 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
 def search_roofline_rows(peaks, quick: bool, repeats: int) -> list[Row]:
     """Lone-query classification against a 100k-entry bank (10k with --quick).
 
-    Exact float32 scan and the two-stage int8 search (bank/search.py), thread CPU time.
+    Exact float32 scan and the two-stage search (bank/search.py), thread CPU time.
     """
     import numpy as np
 
@@ -109,14 +109,14 @@ def search_roofline_rows(peaks, quick: bool, repeats: int) -> list[Row]:
                          * (1.0 + np.arange(dims)) ** -0.6).astype(np.float32)
     queries /= np.linalg.norm(queries, axis=1, keepdims=True)
     rows = []
-    # floors: the float32 bank read once; the int8 codes read once plus the rescored rows
+    # floors: the float32 bank read once; the coarse codes read once plus the rescored rows
     exact_work = bank_scan_work(n, dims, 4.0)
-    coarse_work = bank_scan_work(n, index.coarse_dims, 1.0)
+    coarse_work = bank_scan_work(n, index.coarse_dims, index.code_bits / 8)
     rescore = bank_scan_work(index.candidates, dims, 4.0)
     two_stage = Work(ops=coarse_work.ops + rescore.ops, bytes=coarse_work.bytes + rescore.bytes,
                      memory=True)
     for what, fn, work in (('classifier: exact float32 scan', index.exact_scores, exact_work),
-                           (f'classifier: int8 {index.coarse_dims}-d scan + '
+                           (f'classifier: int{index.code_bits} {index.coarse_dims}-d scan + '
                             f'{index.candidates} rescored', index.scores, two_stage)):
         fn(queries[:1], gamma=50.0)
         best = float('inf')

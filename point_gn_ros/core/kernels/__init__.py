@@ -47,6 +47,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             # a lone cloud's helper thread (no arithmetic: the chunks run in pgn_encode.c)
             'pgn_lone.c': ['-fno-fast-math'],
             'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
+            'pgn_scan4.c': ['-ffast-math'],  # the coarse pass over packed 4-bit codes
             # the exact vote's dot products: one summation order in any batch
             'pgn_dots.c': ['-fno-fast-math', '-ffp-contract=off'],
             # the index's projection: row results must not depend on the batch
@@ -230,6 +231,10 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_scan_f32.argtypes = [p, i64, p, i64, p, p]
     lib.pgn_scan_i8_multi.restype = None
     lib.pgn_scan_i8_multi.argtypes = [p, i64, i64, p, i64, p]
+    lib.pgn_scan_i4.restype = None
+    lib.pgn_scan_i4.argtypes = [p, i64, i64, p, p]
+    lib.pgn_scan_i4_multi.restype = None
+    lib.pgn_scan_i4_multi.argtypes = [p, i64, i64, p, i64, p]
     lib.pgn_dots_f32.restype = None
     lib.pgn_dots_f32.argtypes = [p, i64, i64, p, i64, p]
     lib.pgn_dots_i8.restype = None
