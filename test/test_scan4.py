@@ -70,14 +70,9 @@ def test_scan_i4_equals_the_unpacked_product(r: int) -> None:
 
 
 def _cpu_flags() -> set[str]:
-    try:
-        text = Path('/proc/cpuinfo').read_text()
-    except OSError:
-        return set()
-    for line in text.splitlines():
-        if line.startswith(('flags', 'Features')):
-            return set(line.split(':', 1)[1].split())
-    return set()
+    """The CPU's feature flags, from the description the kernel cache is keyed by."""
+    return {flag for line in kernels._cpu_id().splitlines()
+            if line.startswith(('flags', 'Features')) for flag in line.split(':', 1)[1].split()}
 
 
 # build flags -> the CPU flags it needs to run

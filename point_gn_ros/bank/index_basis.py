@@ -21,7 +21,7 @@ COARSE_ENERGY = 0.9
 # Bits a coarse code: 4 (codes in [-7, 7], half the bytes of 8) or 8 ([-127, 127]). On the
 # shipped scan section (288 of 320 dims) 4 bits kept 8 bits' fidelity against the exact
 # search (0 of 9,843 train and 0 of 4,936 test labels differ), and its coarse pass after
-# idle time takes 1.0 ms instead of 1.7-1.8 (BENCHMARKS.md, "Third session of 2026-12-03").
+# idle time takes 1.0-1.2 ms instead of 1.7-2.2 (BENCHMARKS.md, "Third session of 2026-12-03").
 COARSE_BITS = 4
 _CODE_TOP = {4: 7, 8: 127}      # bits -> the largest |code|
 # Rows used to find the principal axes (a sample: the rotation only steers the coarse
