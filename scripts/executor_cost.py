@@ -5,7 +5,7 @@ SingleThreadedExecutor on its own thread, whose subscription callback only count
 that thread's CPU time per received message (issue 13: the classifier node's executor
 thread takes ~1.2 ms a message, BENCHMARKS.md).
 
-Run: python scripts/executor_cost.py [--services N] [--parameter-services]
+Run: python scripts/executor_cost.py [--services N] [--parameter-services] [--raw]
 """
 
 from __future__ import annotations
@@ -39,6 +39,8 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--services', type=int, default=0, help='extra Trigger services')
     p.add_argument('--parameter-services', action='store_true')
+    p.add_argument('--raw', action='store_true',
+                   help='take the serialized bytes (raw=True): no deserialization')
     args = p.parse_args()
     rclpy.init()
     sender = Node('executor_cost_sender', start_parameter_services=False)
@@ -48,7 +50,8 @@ def main() -> int:
     qos = QoSProfile(depth=5, history=HistoryPolicy.KEEP_LAST,
                      reliability=ReliabilityPolicy.RELIABLE)
     receiver.create_subscription(PointCloud2, 'executor_cost_objects',
-                                 lambda msg: count.__setitem__(0, count[0] + 1), qos)
+                                 lambda msg: count.__setitem__(0, count[0] + 1), qos,
+                                 raw=args.raw)
     for i in range(args.services):
         receiver.create_service(Trigger, f'~/service_{i}', lambda req, resp: resp)
     receiver.create_timer(1.0, lambda: None)
@@ -76,7 +79,8 @@ def main() -> int:
     got = count[0] - got0
     per = (thread_cpu_s(spinner.native_id) - cpu0) / max(got, 1)
     print(f'{args.services} extra services, parameter services '
-          f'{"on" if args.parameter_services else "off"}: {got}/{sent} received, executor '
+          f'{"on" if args.parameter_services else "off"}{", raw" if args.raw else ""}: '
+          f'{got}/{sent} received, executor '
           f'CPU {per * 1e3:.3f} ms per message', flush=True)
     rclpy.shutdown()                     # ends the spinning thread's spin()
     spinner.join(timeout=5.0)

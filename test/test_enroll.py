@@ -177,6 +177,19 @@ def test_the_node_wraps_its_loaded_bank_without_rederiving_it(tmp_path: Path, dt
     assert torch.equal(again.features, loaded.features)
 
 
+def test_loaded_bank_goes_live_without_copying_its_rows(tmp_path: Path) -> None:
+    """FeatureBank.load's rows have room: LiveBank keeps them and appends after them."""
+    bf, centres = _bank()
+    loaded = FeatureBank.load(bf.save(tmp_path / 'b.npz'))
+    before = loaded.features.clone()
+    live = LiveBank(BankFile.of_loaded(loaded), lambda active: len(active))
+    assert live.current().bank.features.data_ptr() == loaded.features.data_ptr()
+    live.add(_queries(centres[1] + 2.0, 5, 3), 'new', 'test')
+    grown = live.current().bank.features
+    assert grown.shape[0] == len(before) + 5 and grown.data_ptr() == loaded.features.data_ptr()
+    assert torch.equal(loaded.features, before) and torch.equal(grown[:len(before)], before)
+
+
 def test_live_bank_readers_see_whole_versions() -> None:
     """Readers racing writers only ever see a snapshot whose parts agree."""
     bf, centres = _bank()

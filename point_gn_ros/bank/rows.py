@@ -27,14 +27,20 @@ _MIN_SPARE = 256
 class _Buffer:
     """(capacity, d) rows of which the first `claimed` are in use by some version."""
 
-    def __init__(self, rows: torch.Tensor, extra: torch.Tensor) -> None:
-        n = rows.shape[0] + extra.shape[0]
+    def __init__(self, n: int, tail: tuple[int, ...], dtype: torch.dtype) -> None:
         spare = max(_MIN_SPARE, int(n * _SPARE_SHARE))
-        self.data = torch.empty((n + spare, *rows.shape[1:]), dtype=rows.dtype)
-        self.data[:rows.shape[0]] = rows
-        self.data[rows.shape[0]:n] = extra
+        self.data = torch.empty((n + spare, *tail), dtype=dtype)
         self.claimed = n
         self.lock = threading.Lock()
+
+    @classmethod
+    def of(cls, rows: torch.Tensor, extra: torch.Tensor) -> '_Buffer':
+        """A buffer holding rows then extra (same trailing shape and dtype)."""
+        n0 = rows.shape[0]
+        buf = cls(n0 + extra.shape[0], tuple(rows.shape[1:]), rows.dtype)
+        buf.data[:n0] = rows
+        buf.data[n0:buf.claimed] = extra
+        return buf
 
 
 def append_rows(rows: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
@@ -56,17 +62,27 @@ def append_rows(rows: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
         if ok:
             buf.data[n:n + m] = new
             return _view(buf, n + m)
-    return _view(_Buffer(rows, new), n + m)
+    return _view(_Buffer.of(rows, new), n + m)
 
 
 def with_room(rows: torch.Tensor) -> torch.Tensor:
     """The same values (N, d) in a buffer with spare room, so the first append is in place.
 
-    For a bank about to take enrollments (bank/live.py): the one copy happens here, once.
+    For a bank about to take enrollments (bank/live.py): the one copy happens here, once
+    (none for rows `FeatureBank.load` made, which already have room).
     """
     if rows.device.type != 'cpu' or getattr(rows, '_pgn_rows', None) is not None:
         return rows
-    return _view(_Buffer(rows, rows[:0]), rows.shape[0])
+    return _view(_Buffer.of(rows, rows[:0]), rows.shape[0])
+
+
+def empty_rows(n: int, d: int) -> torch.Tensor:
+    """(n, d) float32, uninitialised, in a buffer with spare room: fill it before use.
+
+    What `FeatureBank.load` fills, so a bank about to take enrollments needs no second copy
+    of its rows (`with_room` returns them as they are).
+    """
+    return _view(_Buffer(n, (d,), torch.float32), n)
 
 
 def _view(buf: _Buffer, n: int) -> torch.Tensor:

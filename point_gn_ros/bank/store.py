@@ -66,6 +66,7 @@ from point_gn_ros.bank.quant import (_INTEGER_DTYPES, STORED_DTYPES, pack_int4, 
 from point_gn_ros.bank.transform import FeatureTransform
 from point_gn_ros.bank.half import HALF_MATRICES, decode_arrays, encode
 from point_gn_ros.bank.head_file import head_from_arrays
+from point_gn_ros.bank.rows import empty_rows
 from point_gn_ros.bank.validate import check_bank_arrays
 
 FORMAT_VERSION = 3
@@ -374,8 +375,10 @@ class FeatureBank:
         tf = FeatureTransform(torch.from_numpy(mean.astype(np.float32)),
                               torch.from_numpy(scale.astype(np.float32)),
                               None if proj is None else torch.from_numpy(proj.astype(np.float32)))
-        # F.normalize's arithmetic in place: a large bank's rows are not held twice at load.
-        features = torch.from_numpy(feats.astype(np.float32))
+        # F.normalize's arithmetic in place, in rows with room for enrollments (bank/rows.py),
+        # converted by copy_: a large bank's rows are not held twice at load, nor later.
+        features = empty_rows(*feats.shape)
+        features.copy_(torch.from_numpy(feats))
         features.div_(features.norm(dim=1, keepdim=True).clamp_min(1e-12))
         return cls(features=features, labels=torch.from_numpy(labels.astype(np.int64)),
                    class_names=class_names, config=cfg, transform=tf, gamma=gamma, meta=meta,
