@@ -68,13 +68,12 @@ class IndexBasis:
         # share of the bank's squared norms on the coarse coordinates: the closer to 1,
         # the better the coarse pass ranks (issue 13's 512-d bank, 128 coords: 0.93)
         energy = float(evals[order].sum() / evals.sum().clamp_min(1e-30))
-        # In blocks of rows, with the largest |value| per block: a whole-bank np.abs(z) was a
-        # second (N, r) float32 temporary at the node's start (90 MB on the shipped bank).
-        z, top = np.empty((n, r), np.float32), np.zeros(r, np.float32)
+        z = _project(feats, rotation, lib)
+        # The largest |value| by blocks of rows: a whole-bank np.abs(z) was a second (N, r)
+        # float32 temporary at the node's start (90 MB on the shipped bank).
+        top = np.zeros(r, np.float32)
         for i in range(0, n, _BLOCK_ROWS):
-            blk = z[i:i + _BLOCK_ROWS]
-            blk[:] = _project(feats[i:i + _BLOCK_ROWS], rotation, lib)
-            np.maximum(top, np.abs(blk).max(axis=0), out=top)
+            np.maximum(top, np.abs(z[i:i + _BLOCK_ROWS]).max(axis=0), out=top)
         scale = np.maximum(top, 1e-12) / _CODE_TOP[bits]                     # (r,)
         return cls(rotation, scale, energy, n, bits), z
 
