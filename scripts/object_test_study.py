@@ -49,8 +49,8 @@ def object_space(sw: torch.Tensor, sb: torch.Tensor, alpha: float, r: int) -> to
     return torch.linalg.eigh(inv @ sb @ inv.T)[1][:, -r:].T @ inv
 
 
-def one_round(r: int, bf: BankFile, train, labels, raw, per, xs, m, c, sw_all,  # noqa: ANN001
-              encoder) -> dict:  # noqa: ANN001
+def one_round(r: int, bf: BankFile, train, labels, raw, per, m, c, sw_all,  # noqa: ANN001
+              encoder, cache: str) -> dict:  # noqa: ANN001
     """Scores of every (rank, alpha, lam, theta) cell in round r: {cell: (inst, dc, ds)}."""
     n_obj, views = len(labels), per - 1
     rng = np.random.default_rng(100 + r)
@@ -67,7 +67,7 @@ def one_round(r: int, bf: BankFile, train, labels, raw, per, xs, m, c, sw_all,  
     target = {'complete': bank_id[labels[others]],
               'scan': np.repeat(bank_id[labels[others]], views)}
     right0 = {k: icv.predict(cur, q[k]) == target[k] for k in ('complete', 'scan')}
-    enroll, query = icv.scans(train, inst, 10, icv_cache, encoder)
+    enroll, query = icv.scans(train, inst, 10, cache, encoder)
     names, ex, q_ids = [], [], []
     policy = RefitPolicy(gamma='auto', lda_prior='typical')
     for cat, o, f in zip(icv.MODELNET10, inst, enroll, strict=True):
@@ -90,7 +90,8 @@ def one_round(r: int, bf: BankFile, train, labels, raw, per, xs, m, c, sw_all,  
     gone = torch.from_numpy(np.flatnonzero(~keep))
     sw = (sw_all - torch.einsum('ond,one->de', c[gone], c[gone])) / (keep.sum() * (views - 1))
     mk = m[torch.from_numpy(keep)]
-    sb = (mk - mk.mean(0)).T @ (mk - mk.mean(0)) / len(mk)
+    mc = mk - mk.mean(0)
+    sb = mc.T @ mc / len(mk)
     out = {}
     for alpha in ALPHAS:
         w_all = object_space(sw, sb, alpha, max(RANKS))
@@ -136,12 +137,10 @@ def fmt(v: np.ndarray) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    global icv_cache
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--cache', required=True)
     p.add_argument('--rounds', type=int, default=12)
     args = p.parse_args(argv)
-    icv_cache = args.cache
     torch.set_num_threads(2)
     bf = BankFile.load(None)
     train = open_dataset(str(icv.MODELNET), split='train')
@@ -159,8 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     sw_all = torch.einsum('ond,one->de', c, c)
     res: dict = {}
     for r in range(args.rounds):
-        for cell, v in one_round(r, bf, train, labels, raw, per, xs, m, c, sw_all,
-                                 encoder).items():
+        for cell, v in one_round(r, bf, train, labels, raw, per, m, c, sw_all, encoder,
+                                 args.cache).items():
             res.setdefault(cell, []).append(v)
         print(f'round {r} done', file=sys.stderr, flush=True)
     base = (RANKS[0], ALPHAS[0], 0, 0.0)
@@ -186,6 +185,5 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-icv_cache = ''
 if __name__ == '__main__':
     sys.exit(main())
