@@ -65,8 +65,10 @@ fuzz: $(STAMP) $(WITH_EXTRAS)
 #   sparse clouds (every scan) filled up to 1024 points with midpoints of neighbouring points
 #   (--upsample midpoint, chosen over repeated points by grouped CV: BENCHMARKS.md);
 #   the scan section's LDA may read every standardised dim (--wide-lda scans; CV chose it).
-#   fitted matrices (PCA, whitening, wide-LDA precision) float16 (--matrix-dtype; bank/half.py).
-# 19.1 MB. ~15 min on 2 cores the first time (encoding 88,587 clouds); CACHE=DIR reuses them.
+#   fitted matrices (PCA, whitening, wide-LDA precision) float16 (--matrix-dtype; bank/half.py);
+#   the object test of taught classes on the scans (bank/objects.py; format 6; 1.3 MB; the
+#   shipped file got it by scripts/attach_object_test.py, every other array as it was).
+# 20.4 MB. ~15 min on 2 cores the first time (encoding 88,587 clouds); CACHE=DIR reuses them.
 CACHE ?=
 default-bank: $(STAMP)
 	$(VENV)/bin/point_gn bank build $(MODELNET) --split train --default-bank --yaw-align \

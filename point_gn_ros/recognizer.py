@@ -97,18 +97,21 @@ class Recognizer:
     def __init__(self, bank: FeatureBank, device: str = 'cpu', resample: ResampleMethod = 'fps',
                  top_k: int = 5, unknown_threshold: float | None = None,
                  encoder: Encoder | None = None, threads: int | None = None,
-                 search: str = 'auto', previous: 'Recognizer | None' = None) -> None:
+                 search: str = 'auto', previous: 'Recognizer | None' = None,
+                 object_test: bool = True) -> None:
         """Encoder + classifier for one bank.
 
         search: the classifier's bank search, 'auto', 'exact' or 'indexed'
         (bank/classifier.py; 'auto' indexes large banks once, here); previous: the
-        recognizer of the bank version this one follows (its index is extended, not rebuilt).
+        recognizer of the bank version this one follows (its index is extended, not rebuilt);
+        object_test: apply the bank's object test to taught classes (bank/objects.py).
         """
         self.bank = bank
         self.encoder = encoder or make_encoder(bank.config, device, threads=threads)
         bank.check_config(self.encoder.cfg)
         self.classifier = Classifier(bank, device, unknown_threshold, search=search,
-                                     previous=None if previous is None else previous.classifier)
+                                     previous=None if previous is None else previous.classifier,
+                                     object_test=object_test)
         self.resample = resample
         self.top_k = top_k
 

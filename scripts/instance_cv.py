@@ -45,6 +45,7 @@ from point_gn_ros.bank.builder import feature_cache_path
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import (BankFile, RefitPolicy, add_examples, refit,
                                       remove_class)
+from point_gn_ros.bank.objects import ObjectTest
 from point_gn_ros.bank.refit import enrolled_debias
 from point_gn_ros.bank.live import refit_ridge_sections
 from point_gn_ros.bank.vote_prior import META_KEY
@@ -68,7 +69,8 @@ def subset(bf: BankFile, keep_obj: np.ndarray, raw: np.ndarray) -> BankFile:
     """The bank without some train objects: keep_obj (S,) bool over the source objects.
 
     raw: the build's cached features (S * per, D), complete then scans per object: a wide
-    LDA's class means lose the removed rows (its covariance is kept, as an enrollment does).
+    LDA's class means lose the removed rows (its covariance is kept, as an enrollment does);
+    the object test, if any, is fitted again without the removed objects.
     """
     per = len(raw) // len(keep_obj)
     vk = np.repeat(keep_obj, per - 1)
@@ -84,7 +86,15 @@ def subset(bf: BankFile, keep_obj: np.ndarray, raw: np.ndarray) -> BankFile:
         head = replace(head, ridge_coef=ridge.fit(b.features[keep], b.labels[keep],
                                                   b.num_classes, head.ridge_gamma,
                                                   head.ridge_lambda))
-    main = replace(b, features=b.features[keep], labels=b.labels[keep], views=views, head=head)
+    objects = b.objects
+    if objects is not None:     # bank/objects.py, refitted on the kept objects' scans alone
+        rows = (per * np.flatnonzero(keep_obj)[:, None] + np.arange(1, per)).ravel()
+        objects = ObjectTest.fit(v.transform.standardized(torch.from_numpy(raw[rows])),
+                                 np.repeat(np.flatnonzero(keep_obj), per - 1),
+                                 views.labels.numpy(), b.class_names, objects.rank,
+                                 objects.alpha, objects.lam, objects.theta)
+    main = replace(b, features=b.features[keep], labels=b.labels[keep], views=views, head=head,
+                   objects=objects)
     return BankFile(main, bf.stored[keep_obj], views=BankFile(views, bf.views.stored[vk]))
 
 

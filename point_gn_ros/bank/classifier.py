@@ -20,6 +20,10 @@ Classes enrolled under `RefitPolicy.vote_prior` > 0 (listed in a section's meta
 'vote_prior') get a class-size prior on their vote (bank/vote_prior.py): a per-class bias
 on the log vote, the same for every search and batch. Banks without it: no bias at all.
 
+A two-section bank with an object test (bank/objects.py) then moves the probabilities of
+its taught classes (those enrollment created) by how much nearer the query is to the taught
+object than to any built one, and renormalises; with no taught class nothing moves.
+
 A lone query (a batch of one, on the CPU with the compiled kernels) takes bank/lone.py's
 path: the same formulas in a few C calls instead of ~40 torch ops, which after a sensor's
 idle gap each started cold. Batches take the torch path.
@@ -160,13 +164,14 @@ class Classifier:
                  unknown_threshold: float | None = None, gamma: float | None = None,
                  novelty_threshold: float | None = None, search: str = 'auto',
                  index_min_entries: int = INDEX_MIN_ENTRIES,
-                 previous: 'Classifier | None' = None) -> None:
+                 previous: 'Classifier | None' = None, object_test: bool = True) -> None:
         """Classifier of one bank version (the search is built here, once).
 
         gamma: override the bank's (comparisons only); search: 'auto', 'exact' or
         'indexed' (module docstring); index_min_entries: the size from which 'auto' indexes;
         previous: the classifier of the version this one follows (an enrollment): its
-        indexes are extended instead of rebuilt where that gives the same (`make_search`).
+        indexes are extended instead of rebuilt where that gives the same (`make_search`);
+        object_test: apply the bank's object test to its taught classes (bank/objects.py).
         """
         self.bank = bank
         self.device = torch.device(device)
@@ -201,6 +206,9 @@ class Classifier:
             else:
                 unknown_threshold = float(calib['threshold'])
         self.unknown_threshold = unknown_threshold or None
+        # The object test's shift of taught classes (bank/objects.py); None: nothing moves.
+        self.object_shift = None if bank.objects is None or not object_test \
+            else bank.objects.shift_for(bank)
         # A lone query's compiled path (bank/lone.py), where every part of this bank has one.
         self.lone = LoneSection.build(self)
         self.lone_gate = None
@@ -217,6 +225,14 @@ class Classifier:
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """-> probability (B, C), novelty (B,), gate's p(scan) (B,) or None."""
         features = features.to(self.device)
+        prob, novelty, p_scan = self._mixed(features)
+        if self.object_shift is not None and len(features):
+            prob = self.object_shift(prob.cpu(), features).to(self.device)
+        return prob, novelty, p_scan
+
+    def _mixed(self, features: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The sections' gate-mixed head: probability (B, C), novelty (B,), p(scan) or None."""
         if len(features) == 1 and self.lone is not None:
             return self._evaluate_lone(features)
         if self.views is None or self.gate is None:

@@ -7,7 +7,8 @@ keeps the complete objects as the main section (exactly the complete-object bank
 width, whitening, LDA, gamma and temperature, all chosen by CV on complete objects) and the
 scans as a second section (own knobs, chosen by CV grouped by source object); a gate
 (bank/gate.py) says how likely a query is a scan and mixes the two sections'
-probabilities (bank/classifier.py).
+probabilities (bank/classifier.py). With the scans' source objects known, the bank also
+gets the object test of taught classes (bank/objects.py), fitted on the scan section.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.gate import GATE_DIMS, GATE_SHRINKAGE, Gate
+from point_gn_ros.bank.objects import ObjectTest
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.datasets.base import Dataset
 
@@ -40,12 +42,15 @@ class RowsDataset(Dataset):
 
 def combine_sections(complete: FeatureBank, views: FeatureBank, feats: torch.Tensor,
                      is_scan: np.ndarray, gate_dims: int | None = GATE_DIMS,
-                     gate_shrinkage: float = GATE_SHRINKAGE) -> FeatureBank:
+                     gate_shrinkage: float = GATE_SHRINKAGE,
+                     groups: np.ndarray | None = None) -> FeatureBank:
     """The two-section bank: `complete` as the main section, `views` as the scan section.
 
     feats: (N, D) raw encoder features of every entry of both; is_scan: (N,) bool. The gate
-    is fitted on them. The unknown rule keeps each kind's held-out false-reject rate at
-    most the target: the lower of the two sections' calibrated thresholds.
+    is fitted on them. groups: (N,) source object of each entry, or None; given (and the
+    scan section's LDA reads every dim), the object test is fitted on the scans. The unknown
+    rule keeps each kind's held-out false-reject rate at most the target: the lower of the
+    two sections' calibrated thresholds.
     """
     if complete.class_names != views.class_names or complete.config != views.config:
         raise ValueError('sections need the same class names and encoder configuration')
@@ -62,4 +67,11 @@ def combine_sections(complete: FeatureBank, views: FeatureBank, feats: torch.Ten
         meta['unknown_calibration'] = dict(
             cal_c, threshold=min(float(cal_c['threshold']), float(cal_v['threshold'])),
             rule="lower of the two sections' thresholds")
-    return replace(complete, meta=meta, views=views, gate=gate)
+    objects = None
+    if groups is not None and views.head is not None and views.head.lda_wide:
+        scan = torch.from_numpy(np.asarray(is_scan, dtype=bool))
+        objects = ObjectTest.fit(views.transform.standardized(feats[scan]),
+                                 np.asarray(groups)[scan.numpy()], views.labels.numpy(),
+                                 views.class_names)
+        meta['object_test'] = objects.describe()
+    return replace(complete, meta=meta, views=views, gate=gate, objects=objects)

@@ -38,6 +38,10 @@ Format version 3 adds, optionally (written as version 2 when it has neither):
                 the same class names and encoder), and
   gate_*        the gate that mixes the two sections (bank/gate.py)
 
+Format version 6 (a two-section bank with an object-level test of taught classes,
+bank/objects.py) adds `objects_projection`, `objects_means`, `objects_labels`,
+`objects_counts` and `objects_meta` (JSON); otherwise as version 5 (or 3-4).
+
 Version-1 banks (kernel vote only, no head) still load, as the plain vote, with a
 log line saying so; `point_gn bank build` rebuilds them with the head.
 """
@@ -66,6 +70,7 @@ from point_gn_ros.bank.quant import (_INTEGER_DTYPES, STORED_DTYPES, pack_int4, 
 from point_gn_ros.bank.transform import FeatureTransform
 from point_gn_ros.bank.half import HALF_MATRICES, decode_arrays, encode
 from point_gn_ros.bank.head_file import head_from_arrays
+from point_gn_ros.bank.objects import ObjectTest, PREFIX as OBJECTS_PREFIX
 from point_gn_ros.bank.rows import empty_rows
 from point_gn_ros.bank.validate import check_bank_arrays
 
@@ -79,7 +84,10 @@ RIDGE_VERSION = 4
 # Written when a section stores its large matrices as scaled float16 (bank/half.py): older
 # readers would take the scaled values as they are.
 HALF_VERSION = 5
-SECTIONED_VERSIONS = (FORMAT_VERSION, RIDGE_VERSION, HALF_VERSION)
+# Written when a two-section bank holds an object test (bank/objects.py): older readers would
+# drop it silently (taught classes answered by the head alone), so they refuse the file.
+OBJECTS_VERSION = 6
+SECTIONED_VERSIONS = (FORMAT_VERSION, RIDGE_VERSION, HALF_VERSION, OBJECTS_VERSION)
 VIEWS_PREFIX = 'views_'
 # Older formats that still load (as the plain kernel vote).
 VOTE_ONLY_VERSIONS = (1,)
@@ -124,6 +132,7 @@ class FeatureBank:
     head: Head | None = None          # None: the plain kernel vote with `gamma`
     views: 'FeatureBank | None' = None  # the single-view scan section (same classes)
     gate: Gate | None = None          # with views: p(query is a scan), mixes the sections
+    objects: ObjectTest | None = None  # with views: the object test of taught classes
 
     @property
     def classifier_head(self) -> Head:
@@ -167,7 +176,12 @@ class FeatureBank:
     def save(self, path: str | os.PathLike[str], dtype: str = 'float16') -> Path:
         """Write the bank atomically; dtype of stored features: float16, float32 or int8."""
         path = Path(path)
-        arrays = self._arrays(dtype, sectioned=self.views is not None)
+        if self.objects is not None and self.views is None:
+            raise ValueError('an object test needs the views section')
+        arrays = self._arrays(dtype, sectioned=self.views is not None,
+                              objects=self.objects is not None)
+        if self.objects is not None:
+            arrays.update(self.objects.arrays())
         if self.views is not None:
             if self.gate is None:
                 raise ValueError('a bank with a views section needs its gate')
@@ -182,10 +196,12 @@ class FeatureBank:
         os.replace(tmp, path)
         return path
 
-    def _arrays(self, dtype: str, sectioned: bool = False) -> dict[str, np.ndarray]:
-        """The file arrays of this section alone (no views section, no gate).
+    def _arrays(self, dtype: str, sectioned: bool = False, objects: bool = False
+                ) -> dict[str, np.ndarray]:
+        """The file arrays of this section alone (no views section, gate or object test).
 
-        sectioned: the file also holds a views section (format 3, like int8/int4 features).
+        sectioned: the file also holds a views section (format 3, like int8/int4 features);
+        objects: and an object test (format 6).
         """
         meta = dict(self.meta)
         version = FORMAT_VERSION if dtype in _INTEGER_DTYPES or sectioned else PLAIN_VERSION
@@ -195,6 +211,8 @@ class FeatureBank:
         half = meta.get('matrix_dtype') == 'float16'
         if half:
             version = HALF_VERSION
+        if objects:
+            version = OBJECTS_VERSION
         meta.update(format_version=version,
                     encoder_version=ENCODER_VERSION,
                     encoder_config=self.config.to_dict(), class_names=list(self.class_names),
@@ -276,12 +294,16 @@ class FeatureBank:
     @classmethod
     def _from_sections(cls, path: Path, a: dict[str, np.ndarray]) -> 'FeatureBank':
         """The main section, plus the views section and gate when the file has them."""
-        main = {k: v for k, v in a.items()
-                if not k.startswith(VIEWS_PREFIX) and k not in GATE_ARRAYS}
+        main = {k: v for k, v in a.items() if not k.startswith((VIEWS_PREFIX, OBJECTS_PREFIX))
+                and k not in GATE_ARRAYS}
         sub = {k[len(VIEWS_PREFIX):]: v for k, v in a.items() if k.startswith(VIEWS_PREFIX)}
         bank = cls._from_arrays(path, main)
         has_gate = any(k in a for k in GATE_ARRAYS)
-        if not sub and not has_gate:
+        has_objects = any(k.startswith(OBJECTS_PREFIX) for k in a)
+        if has_objects != (bank.meta.get('format_version') == OBJECTS_VERSION):
+            raise BankError(f'{path}: an object test comes with format {OBJECTS_VERSION}, and '
+                            f'only with it (format {bank.meta.get("format_version")})')
+        if not sub and not has_gate and not has_objects:
             return bank
         if bank.meta.get('format_version') not in SECTIONED_VERSIONS:
             raise BankError(f'{path}: views section or gate in a format '
@@ -294,9 +316,11 @@ class FeatureBank:
                             'differ from the main section')
         try:
             gate = Gate.from_arrays(a, bank.config.feature_dim)
+            objects = ObjectTest.from_arrays(a, bank.config.feature_dim) if has_objects \
+                else None
         except ValueError as exc:
             raise BankError(f'{path}: {exc}') from None
-        return replace(bank, views=views, gate=gate)
+        return replace(bank, views=views, gate=gate, objects=objects)
 
     @classmethod
     def _from_arrays(cls, path: Path, a: dict[str, np.ndarray],
@@ -319,7 +343,7 @@ class FeatureBank:
                         REBUILD_HINT)
         elif version not in (PLAIN_VERSION, *SECTIONED_VERSIONS):
             raise bad(f'format version {version!r} is not supported (expected {PLAIN_VERSION}-'
-                      f'{HALF_VERSION}; '
+                      f'{OBJECTS_VERSION}; '
                       f'rebuild: {REBUILD_HINT})')
         if meta.get('encoder_version') != ENCODER_VERSION:
             raise bad(f'built by encoder version {meta.get("encoder_version")!r}, running '
@@ -330,7 +354,8 @@ class FeatureBank:
             gamma = float(meta['gamma'])
         except (KeyError, TypeError, ValueError) as exc:
             raise bad(f'incomplete metadata ({exc})') from None
-        a = decode_arrays(bad, a, meta, version == HALF_VERSION)
+        a = decode_arrays(bad, a, meta, version == HALF_VERSION or (
+            version == OBJECTS_VERSION and meta.get('matrix_dtype') == 'float16'))
         feats, labels = a['features'], a['labels']
         mean, scale = a['tf_mean'], a['tf_scale']
         proj = a.get('tf_projection')

@@ -196,7 +196,7 @@ def _build_sections(ds, cfg, args: argparse.Namespace, dims: list,  # noqa: ANN0
                        groups=np.asarray(ds.groups)[scan], cv_subset=sub,
                        wide_lda=args.wide_lda != 'none', ridge=args.ridge == 'all', **common)
     print('\n'.join(describe_selection(views.meta)))
-    return combine_sections(complete, views, feats, scan)
+    return combine_sections(complete, views, feats, scan, groups=np.asarray(ds.groups))
 
 
 def _report_input(ds, cfg, args: argparse.Namespace, dims: list) -> None:  # noqa: ANN001
@@ -312,6 +312,11 @@ def _info(args: argparse.Namespace) -> int:
               f'{100 * g.get("train_routing_complete", float("nan")):.1f} % of complete '
               f'objects and {100 * g.get("train_routing_scans", float("nan")):.1f} % of '
               f'scans right on the bank itself')
+    if bank.objects is not None:
+        o = bank.objects
+        print(f'  object test of taught classes (bank/objects.py): {len(o.means)} built '
+              f'objects, rank {o.rank}, shrinkage {o.alpha:g}, slope {o.lam:g}, offset '
+              f'{o.theta:g}')
     prov = bank.meta.get('provenance', {})
     print(f'  created {prov.get("created", "?")}; classes: {", ".join(bank.class_names)}')
     return 0

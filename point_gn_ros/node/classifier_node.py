@@ -243,7 +243,8 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         encoder = make_encoder(bank.config, s.device, threads=s.encoder_threads)
         try:
             return Recognizer(bank, s.device, s.resample, s.top_k,
-                              s.unknown_threshold or None, encoder=encoder, search=s.search)
+                              s.unknown_threshold or None, encoder=encoder, search=s.search,
+                              object_test=s.object_test)
         except ValueError as exc:       # e.g. unknown_threshold < 0 without a calibration
             raise NodeConfigError(str(exc)) from None
 

@@ -253,7 +253,8 @@ class Enrollment(ManagedEntity):
         from point_gn_ros.recognizer import Recognizer
         s, enc = self.node.settings, self.node.recognizer.encoder
         return Recognizer(bank, s.device, s.resample, s.top_k, s.unknown_threshold or None,
-                          encoder=enc, search=s.search, previous=previous)
+                          encoder=enc, search=s.search, previous=previous,
+                          object_test=s.object_test)
 
     # ------------------------------------------------------------------ worker hooks
 

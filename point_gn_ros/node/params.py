@@ -46,6 +46,7 @@ class Settings:
     marker_lifetime_s: float = 2.0
     autostart: bool = True
     search: str = 'auto'
+    object_test: bool = True
 
 
 def _int_range(lo: int, hi: int) -> list[IntegerRange]:
@@ -118,6 +119,10 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                        "exact rescoring of the best 512; built at bank load) or 'auto' "
                        '(indexed from 20,000 entries on the CPU).',
                {'additional_constraints': "one of 'auto', 'exact', 'indexed'"}),
+    'object_test': (True, "Apply the bank's object test to classes taught by enrollment "
+                          '(bank/objects.py: a taught class gains on scans nearer its object '
+                          'than any built one, loses on the others); false = the head alone. '
+                          'Banks without one (format < 6): no effect.', {}),
     'autostart': (True, 'Walk the lifecycle to active at start (configure + activate), as a '
                         'plain node; false = wait for a lifecycle manager.', {}),
 }
