@@ -126,7 +126,7 @@ def test_format_1_bank_loads_as_the_plain_vote_with_a_log_line(
     np.testing.assert_allclose(res.probability, shares.numpy(), atol=1e-5)
     # a format-1 calibration thresholds the top vote share, as it always did
     assert ((res.labels == UNKNOWN) == (res.scores < 0.9)).all()
-    meta['format_version'] = 6          # a future format: refused, naming the rebuild
+    meta['format_version'] = 7          # a future format: refused, naming the rebuild
     arrays['meta'] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     np.savez(path, **arrays)
     with pytest.raises(BankError, match='point_gn bank build'):

@@ -201,15 +201,18 @@ class ObjectShift:
     lam: float
     theta: float
 
+    def __post_init__(self) -> None:
+        # |m|^2 - r / n per mean, once per bank version: a lone query then costs two products.
+        for name, means, noise in (('_built_c', self.built, self.built_noise),
+                                   ('_taught_c', self.taught_means, self.taught_noise)):
+            object.__setattr__(self, name, (means ** 2).sum(1) - noise)
+
     def gaps(self, features: torch.Tensor) -> torch.Tensor:
         """features: (B, D) raw encoder output -> t (B, T) (module docstring)."""
         z = self.transform.standardized(features.cpu()).double() @ self.projection.T
-        zz = (z * z).sum(1, keepdim=True)
-        d_built = (zz - 2 * z @ self.built.T + (self.built ** 2).sum(1)
-                   - self.built_noise).min(1, keepdim=True).values
-        d_taught = (zz - 2 * z @ self.taught_means.T + (self.taught_means ** 2).sum(1)
-                    - self.taught_noise)
-        return d_taught - d_built
+        # |z - m|^2 - r / n = |z|^2 - 2 z.m + (|m|^2 - r / n); |z|^2 cancels in the difference
+        d_built = (self._built_c - 2 * z @ self.built.T).min(1, keepdim=True).values
+        return (self._taught_c - 2 * z @ self.taught_means.T) - d_built
 
     def __call__(self, prob: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         """Probabilities (B, C) float32, rows summing to 1 -> shifted and renormalised (B, C)."""
