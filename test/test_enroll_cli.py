@@ -7,6 +7,7 @@ from pathlib import Path
 from conftest import MODELNET, load_modelnet_split
 import numpy as np
 import pytest
+import torch
 
 from point_gn_ros.bank.enroll import BankFile, class_counts
 from point_gn_ros.cli import main
@@ -146,3 +147,28 @@ def test_add_fused_views_of_one_object(small_bank_path: Path, tmp_path: Path,
     assert main(['bank', 'add', str(small_bank_path), str(folder), '--class', 'toolbox',
                  '--fuse-views', '-o', str(tmp_path / 'no.npz')]) == 2
     assert 'do not overlap' in capsys.readouterr().err and not (tmp_path / 'no.npz').exists()
+
+
+def test_add_files_in_a_y_up_frame(small_bank_path: Path, tmp_path: Path,
+                                   capsys: pytest.CaptureFixture) -> None:
+    from point_gn_ros.commands.common import UP_AXES
+
+    xyz, labels, names = load_modelnet_split('test')
+    obj = xyz[np.flatnonzero(labels == names.index('cone'))[3]]          # z up
+    np.save(tmp_path / 'z_up.npy', obj)
+    np.save(tmp_path / 'y_up.npy', (obj.astype(np.float64) @ UP_AXES['y']).astype(np.float32))
+
+    def taught(name: str, *up: str) -> torch.Tensor:
+        out = tmp_path / f'{name}.npz'
+        assert main(['bank', 'add', str(small_bank_path), str(tmp_path / f'{name}.npy'),
+                     '--class', 'toolbox', '-o', str(out), *up]) == 0
+        bank = BankFile.load(out).bank
+        return bank.features[bank.labels == bank.class_names.index('toolbox')]
+
+    # The y-up file, told its up axis, is enrolled as the z-up object is (same entry)...
+    same = taught('z_up')
+    assert torch.equal(taught('y_up', '--up', 'y'), same)
+    assert BankFile.load(tmp_path / 'y_up.npz').bank.meta['enrollments'][0]['source'] \
+        .endswith('(up y)')
+    # ... and not so when it is read as z up (a lying object).
+    assert not torch.allclose(taught('y_up'), same, atol=1e-3)

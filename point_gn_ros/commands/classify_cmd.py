@@ -9,11 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 
-import numpy as np
-
-# Proper rotations taking the named axis to +z (rows: new x, y, z as old coordinates).
-UP_AXES = {'z': np.eye(3), 'y': np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
-           '-y': np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])}
+from point_gn_ros.commands.common import add_up_arg, to_z_up
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,10 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument('files', nargs='+', metavar='FILE', help='.pcd .ply .npy .txt .xyz files')
     c.add_argument('--bank', default=None, help='bank file (default: the shipped bank)')
     c.add_argument('--top-k', type=int, default=3, help='classes to list per file (default 3)')
-    c.add_argument('--up', choices=tuple(UP_AXES), default='z',
-                   help="the file's up axis: z (ROS body frames, datasets), -y (camera optical "
-                        'frames: y down, z forward), y (e.g. the Stanford scans); banks hold '
-                        'upright objects, z up')
+    add_up_arg(c)
     c.add_argument('--json', action='store_true', help='print JSON lines')
     c.set_defaults(func=_classify)
 
@@ -36,7 +29,7 @@ def _classify(args: argparse.Namespace) -> int:
     rec = Recognizer.from_bank(args.bank, top_k=args.top_k)
     names = rec.class_names
     for path in args.files:
-        xyz = (read_points(path).astype(np.float64) @ UP_AXES[args.up].T).astype(np.float32)
+        xyz = to_z_up(read_points(path), args.up)
         res = rec.classify_clouds([xyz])
         top = [(names[int(i)], float(s))
                for i, s in zip(res.topk_ids[0], res.topk_scores[0], strict=True)]

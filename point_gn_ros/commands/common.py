@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
+
 DATASET_FORMATS = ('modelnet40_h5', 'scanobjectnn_h5', 'folder')
 
 
@@ -32,3 +34,20 @@ def open_dataset_from_args(args: argparse.Namespace):
     if getattr(args, 'variant', None):
         kwargs['variant'] = args.variant
     return open_dataset(args.dataset, **kwargs)
+
+
+# Proper rotations taking the named axis to +z (rows: new x, y, z as old coordinates).
+UP_AXES = {'z': np.eye(3), 'y': np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
+           '-y': np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])}
+
+
+def add_up_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument('--up', choices=tuple(UP_AXES), default='z',
+                   help="the files' up axis: z (ROS body frames, datasets), -y (camera optical "
+                        'frames: y down, z forward), y (e.g. the Stanford scans); banks hold '
+                        'upright objects, z up')
+
+
+def to_z_up(xyz: np.ndarray, up: str) -> np.ndarray:
+    """xyz: (N, 3) in a frame whose `up` axis points up -> (N, 3) float32 with z up."""
+    return (np.asarray(xyz, dtype=np.float64) @ UP_AXES[up].T).astype(np.float32)

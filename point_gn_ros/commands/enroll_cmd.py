@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from point_gn_ros.commands.common import add_encoder_args
+from point_gn_ros.commands.common import add_encoder_args, add_up_arg, to_z_up
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -37,6 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="store each example in these frames (core/augment.py): 'd4' = the 8 "
                         'frames the yaw alignment confuses on partial scans (8 entries per '
                         "example); default 'none'")
+    add_up_arg(a)
     a.add_argument('--fuse-views', action='store_true',
                    help='the inputs are views of ONE object in one fixed frame (odom, map): '
                         'also add their fused cloud and 8 scans simulated from it '
@@ -184,6 +185,9 @@ def _add(args: argparse.Namespace) -> int:
 
     bf = BankFile.load(args.bank)
     clouds, source = _read_inputs(args)
+    if args.up != 'z':      # the bank's frame is z up, as `classify --up` and the node's up_axis
+        clouds = [to_z_up(c, args.up) for c in clouds]
+        source = f'{source} (up {args.up})'
     empty = [i for i, c in enumerate(clouds) if len(c) == 0]
     if not clouds or empty:
         raise EnrollError(f'no usable example: {len(clouds)} input(s), empty: {empty}')
