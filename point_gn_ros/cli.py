@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # Modules that register sub-commands, in the order they appear in --help.
@@ -46,6 +47,11 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader went away (`point_gn ... | head`): no traceback, and none at exit when
+        # Python flushes stdout again (the recipe of Python's signal docs).
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except Exception as exc:  # noqa: BLE001 - one clear line for users, not a traceback
         from point_gn_ros.errors import PointGNError
         if isinstance(exc, PointGNError):

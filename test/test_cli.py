@@ -125,3 +125,12 @@ def test_scanobjectnn_bank_uses_sigma_03(tmp_path: Path) -> None:
     bank = FeatureBank.load(out)
     assert bank.config.sigma == 0.3 and bank.meta['provenance']['format'] == 'scanobjectnn_h5'
     assert len(bank.class_names) == 15 and len(bank) == int(keep.sum())
+
+
+def test_a_closed_pipe_ends_quietly(bank: Path) -> None:
+    # `point_gn bank history BANK | head -0`: the reader is gone before anything is printed.
+    proc = subprocess.Popen([sys.executable, '-m', 'point_gn_ros.cli', 'bank', 'history',
+                             str(bank)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 1 and 'Traceback' not in err and 'Broken pipe' not in err, err

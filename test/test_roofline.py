@@ -42,3 +42,17 @@ def test_measured_peaks_are_plausible() -> None:
     # thread CPU time: other processes on the core do not lower these
     assert 1e9 < p.ops < 1e12 and 1e8 < p.exps < p.ops
     assert 1e9 < p.mem_bw < p.l2_bw < 1e12
+
+
+def test_cpus_at_once_are_measured_in_wall_time() -> None:
+    from point_gn_ros.core.kernels.roofline import measure_parallel_ops, measure_peaks
+
+    lib = kernels.load()
+    if lib is None:
+        pytest.skip(f'compiled kernels unavailable: {kernels.last_error()}')
+    one = measure_peaks(lib, min_seconds=0.01, tries=1).ops
+    # wall time is never shorter than the thread CPU time of the same work, so n threads give
+    # at most about n cores' worth (a margin for the noise between the two measurements)
+    for n in (1, 2):
+        got = measure_parallel_ops(lib, n, one, seconds=0.02, tries=1)
+        assert 0.05 * one < got < 1.3 * n * one, (n, got / one)

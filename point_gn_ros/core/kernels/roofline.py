@@ -17,6 +17,7 @@ from __future__ import annotations
 import ctypes
 from dataclasses import dataclass
 import math
+import threading
 import time
 
 import numpy as np
@@ -85,6 +86,37 @@ def measure_peaks(lib: ctypes.CDLL, min_seconds: float = 0.05, tries: int = 5) -
     mem_bw = _best_rate(lambda s: lib.pgn_peak_read(mem.ctypes.data, mem.size, s),
                         min_seconds, tries)
     return Peaks(ops=ops, exps=exps, l2_bw=l2_bw, mem_bw=mem_bw)
+
+
+def measure_parallel_ops(lib: ctypes.CDLL, threads: int, one_core_ops: float,
+                         seconds: float = 0.2, tries: int = 3) -> float:
+    """fp32 lane operations per WALL second of `threads` threads running pgn_peak_ops at once.
+
+    What the CPUs this process may use deliver together: unlike the per-core peaks (thread CPU
+    time), wall time counts what the hypervisor steals and what SMT siblings share, so
+    this over `one_core_ops` is how many cores' worth a batched encoder can have here. Best
+    of tries (ctypes releases the GIL for the calls).
+    """
+    per_iter = lib.pgn_peak_ops(1000) / 1000.0                 # lane operations an iteration
+    iters = max(1, int(seconds * one_core_ops / per_iter))
+    best = 0.0
+    for _ in range(tries):
+        done = [0.0] * threads
+        start = threading.Barrier(threads + 1)
+
+        def run(i: int, done: list[float] = done, start: threading.Barrier = start) -> None:
+            start.wait()
+            done[i] = lib.pgn_peak_ops(iters)
+
+        workers = [threading.Thread(target=run, args=(i,)) for i in range(threads)]
+        for w in workers:
+            w.start()
+        start.wait()
+        t0 = time.perf_counter()
+        for w in workers:
+            w.join()
+        best = max(best, sum(done) / (time.perf_counter() - t0))
+    return best
 
 
 def _stages(cfg: EncoderConfig):
