@@ -6,7 +6,9 @@ section (bank/classifier.py). `--case scans`: simulated single-view scans the ga
 the scan section alone; with and without the coarse pass split over the helper thread
 (bank/search.py, `SPLIT_MIN_ROWS`). `--compare bits` instead compares the scan section's
 index at 4-bit and 8-bit coarse codes (bank/index_basis.py `COARSE_BITS`), both with the
-helper thread. `--gap-ms G` idles G ms before each query, as between a sensor's objects.
+helper thread. `--case complete --compare nibbles`: complete objects the gate sends to the
+complete section alone, its exact scan from 4-bit nibbles (kernels.lone_dots_i4) against
+its int8 codes. `--gap-ms G` idles G ms before each query, as between a sensor's objects.
 Interleaved passes, wall and process CPU time, one torch thread, and whether the answers
 are identical.
 """
@@ -22,9 +24,9 @@ import torch
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--case', choices=('both', 'scans'), default='both')
+    ap.add_argument('--case', choices=('both', 'scans', 'complete'), default='both')
     ap.add_argument('--passes', type=int, default=30)
-    ap.add_argument('--compare', choices=('helper', 'bits'), default='helper')
+    ap.add_argument('--compare', choices=('helper', 'bits', 'nibbles'), default='helper')
     ap.add_argument('--gap-ms', type=float, default=0.0)
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -42,7 +44,8 @@ def main() -> None:
                         for x in load_demo_objects().xyz])
     p = rec.classifier.gate.scan_probability(feats)
     skip = clf_mod.GATE_SKIP
-    queries = feats[p >= 1 - skip] if scans else feats[(p > skip) & (p < 1 - skip)]
+    queries = (feats[p >= 1 - skip] if scans else feats[p <= skip] if args.case == 'complete'
+               else feats[(p > skip) & (p < 1 - skip)])
     print(f'{len(queries)} of {len(feats)} objects in this case')
     helper, split = clf_mod.helper_thread, search_mod.SPLIT_MIN_ROWS
     views = rec.classifier.views
@@ -53,6 +56,9 @@ def main() -> None:
             views.search = IndexedSearch(views.features, views.labels, views.bank.num_classes,
                                          code_bits=bits)
             searches[mode] = (views.search, LoneSection.build(views))
+    elif args.compare == 'nibbles':
+        modes = ('nibbles', 'int8 codes')
+        lone, packed = rec.classifier.lone, rec.classifier.lone.packed
     else:
         modes = ('helper thread', 'one thread')
     times: dict[str, list[float]] = {m: [] for m in modes}
@@ -62,6 +68,8 @@ def main() -> None:
         for mode in modes:
             if args.compare == 'bits':
                 views.search, views.lone = searches[mode]
+            elif args.compare == 'nibbles':
+                lone.packed = packed if mode == 'nibbles' else None
             else:
                 on = mode == 'helper thread'
                 clf_mod.helper_thread = helper if on else (lambda: None)

@@ -7,6 +7,9 @@ helper thread.
 
 from __future__ import annotations
 
+import ctypes
+from pathlib import Path
+import subprocess
 import threading
 
 import numpy as np
@@ -210,3 +213,62 @@ def test_the_helper_thread_is_kept_off_its_callers_cpu() -> None:
         th.join()
     for cpu in cpus[:2]:
         assert seen[cpu] == set(cpus) - {cpu}   # everywhere but where its caller runs
+
+
+def _check_nibbles(dots_i8, dots_i4, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    for n, d in ((9843, 512), (13, 16), (1, 32), (100, 320), (9, 48)):
+        codes = rng.integers(-8, 8, (n, d)).astype(np.int8)
+        codes[0] = 7
+        codes[-1] = -8                                  # both nibbles' extremes
+        norms = (np.linalg.norm(codes.astype(np.float32), axis=1) + 0.5).astype(np.float32)
+        q = rng.normal(size=d).astype(np.float32)
+        assert np.array_equal(dots_i4(kernels.pack_nibbles(codes), norms, q),
+                              dots_i8(codes, norms, q)), (n, d)
+
+
+def test_lone_scan_of_nibbles_is_the_int8_scan_bit_for_bit(lib) -> None:
+    _check_nibbles(lambda c, nrm, q: kernels.bank_dots(c, q[None], nrm)[0],
+                   kernels.lone_dots_i4, seed=1)
+    codes = np.zeros((2, 24), np.int8)
+    with pytest.raises(ValueError, match='16 a group'):
+        kernels.pack_nibbles(codes)
+    with pytest.raises(ValueError, match='do not fit'):
+        kernels.lone_dots_i4(kernels.pack_nibbles(codes[:, :16]), np.ones(2, np.float32),
+                             np.zeros(8, np.float32))
+
+
+@pytest.mark.parametrize('build', ['portable', 'avx2'])
+def test_lone_scan_of_nibbles_in_other_builds(build: str, tmp_path: Path) -> None:
+    """CI machines differ in the path pgn_dots.c takes: each must equal its own int8 scan."""
+    from test_scan4 import _BUILDS, _cpu_flags
+
+    flags, needs = _BUILDS[build]
+    cc = kernels._compiler()
+    if cc is None:
+        pytest.skip('no C compiler: the kernels are not built on this machine')
+    missing = needs - _cpu_flags()
+    if missing:
+        pytest.skip(f'this CPU cannot run the {build} build (lacks {sorted(missing)})')
+    so = tmp_path / 'dots.so'
+    subprocess.run([cc, '-O3', '-fPIC', '-shared', '-std=gnu11', '-fno-fast-math',
+                    '-ffp-contract=off', *flags, str(Path(kernels.__file__).parent / 'pgn_dots.c'),
+                    '-o', str(so)], check=True, capture_output=True)
+    one = ctypes.CDLL(str(so))
+    p, i64 = ctypes.c_void_p, ctypes.c_int64
+    one.pgn_dots_i8.argtypes = [p, p, i64, i64, p, i64, p]
+    one.pgn_dots_i4.argtypes = [p, p, i64, i64, p, p]
+
+    def dots_i8(codes: np.ndarray, norms: np.ndarray, q: np.ndarray) -> np.ndarray:
+        out = np.empty(len(codes), np.float32)
+        one.pgn_dots_i8(codes.ctypes.data, norms.ctypes.data, *codes.shape, q.ctypes.data, 1,
+                        out.ctypes.data)
+        return out
+
+    def dots_i4(packed: np.ndarray, norms: np.ndarray, q: np.ndarray) -> np.ndarray:
+        out = np.empty(len(packed), np.float32)
+        one.pgn_dots_i4(packed.ctypes.data, norms.ctypes.data, len(packed), 2 * packed.shape[1],
+                        q.ctypes.data, out.ctypes.data)
+        return out
+
+    _check_nibbles(dots_i8, dots_i4, seed=2)

@@ -30,6 +30,7 @@ def test_the_shipped_bank_answers_a_lone_query_as_a_batch_does() -> None:
     rec = Recognizer.from_bank(None)
     clf = rec.classifier
     assert clf.lone is not None and clf.views.lone is not None and clf.lone_gate is not None
+    assert clf.lone.packed is not None     # the complete section's int4 codes, from nibbles
     objects = load_demo_objects()
     rng = np.random.default_rng(5)
     feats = rec.encode([place_in_sensor_frame(x, rng, single_view=view)

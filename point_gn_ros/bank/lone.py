@@ -71,8 +71,13 @@ class LoneSection:
         self.lda_bias = _f32(head.lda_bias) if use_lda else None
         self.lda_wide, self.fusion_weight = bool(head.lda_wide), float(head.fusion_weight)
         self.index = getattr(search, 'index', None)         # IndexedSearch, else ExactSearch
+        self.packed = None
         if self.index is None:
             self.rows, self.norms = search._rows
+            # int4 codes (every value in [-8, 7]) scanned from nibbles: half the bytes
+            if (self.norms is not None and self.rows.shape[1] % 16 == 0
+                    and -8 <= self.rows.min() and self.rows.max() <= 7):
+                self.packed = kernels.pack_nibbles(self.rows)
             self.labels = np.ascontiguousarray(clf.labels.cpu().numpy(), dtype=np.int64)
         else:
             self.labels = np.ascontiguousarray(self.index.labels, dtype=np.int64)
@@ -104,7 +109,10 @@ class LoneSection:
     def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, float]:
         """x: (D,) float32 raw features -> probability (C,) float32, novelty."""
         xs, z, u = self.embed(x)
-        if self.index is None:
+        if self.packed is not None:
+            sims = kernels.lone_dots_i4(self.packed, self.norms, u)
+            labels = self.labels
+        elif self.index is None:
             sims = kernels.bank_dots(self.rows, u[None], self.norms)[0]
             labels = self.labels
         else:

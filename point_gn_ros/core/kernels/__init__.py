@@ -239,6 +239,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_dots_f32.argtypes = [p, i64, i64, p, i64, p]
     lib.pgn_dots_i8.restype = None
     lib.pgn_dots_i8.argtypes = [p, p, i64, i64, p, i64, p]
+    lib.pgn_dots_i4.restype = None
+    lib.pgn_dots_i4.argtypes = [p, p, i64, i64, p, p]
     lib.pgn_project_f32.restype = None
     lib.pgn_project_f32.argtypes = [p, i64, i64, p, i64, p]
     f64 = ctypes.c_double
@@ -333,6 +335,39 @@ def bank_dots(feats: np.ndarray, queries: np.ndarray, norms: np.ndarray | None =
     else:
         lib.pgn_dots_f32(feats.ctypes.data, feats.shape[0], feats.shape[1], q.ctypes.data,
                          q.shape[0], out.ctypes.data)
+    return out
+
+
+def pack_nibbles(codes: np.ndarray) -> np.ndarray:
+    """(N, d) int8 codes in [-8, 7], d % 16 == 0 -> (N, d / 2) uint8 for `lone_dots_i4`.
+
+    Byte b of each group of 16 codes holds code b (low nibble) and code 8 + b (high), + 8:
+    one 8-byte load gives two 8-lane steps of pgn_dots.c in index order. (The index's coarse
+    codes pair slices of 64 for integer dot products, and bank files pair neighbours:
+    bank/index_basis.py, bank/quant.py.)
+    """
+    n, d = codes.shape
+    if d % 16 or codes.dtype != np.int8:
+        raise ValueError(f'nibble packing needs int8 codes, 16 a group, got {codes.dtype} x {d}')
+    u = (codes.astype(np.int16) + 8).astype(np.uint8).reshape(n, d // 16, 2, 8)
+    return np.ascontiguousarray((u[:, :, 0] | (u[:, :, 1] << 4)).reshape(n, d // 2))
+
+
+def lone_dots_i4(packed: np.ndarray, norms: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """One query's cosines to rows codes / norms from `pack_nibbles(codes)`: (d,) -> (N,).
+
+    Bit for bit `bank_dots(codes, query[None], norms)[0]`, from half its bytes.
+    """
+    lib = _require()
+    n, half = packed.shape
+    q = np.ascontiguousarray(query, dtype=np.float32)
+    if (packed.dtype != np.uint8 or not packed.flags.c_contiguous or q.shape != (2 * half,)
+            or norms.dtype != np.float32 or norms.shape != (n,) or not norms.flags.c_contiguous):
+        raise ValueError(f'packed rows {packed.dtype} {packed.shape}, norms {norms.dtype} '
+                         f'{norms.shape} and query {q.shape} do not fit')
+    out = np.empty(n, np.float32)
+    lib.pgn_dots_i4(packed.ctypes.data, norms.ctypes.data, n, 2 * half, q.ctypes.data,
+                    out.ctypes.data)
     return out
 
 

@@ -124,3 +124,58 @@ void pgn_dots_i8(const int8_t *codes, const float *norms, int64_t n, int64_t d,
     for (; i + 2 <= n; i += 2) rows_tile(codes, norms, i, n, d, q, nq, 2, 1, out);
     if (i < n) rows_tile(codes, norms, i, n, d, q, nq, 1, 1, out);
 }
+
+/* ---- One query against 4-bit codes, 16 values to 8 bytes (kernels.pack_nibbles) ----
+ * Byte b of a row's group g holds code 16 g + b in its low nibble and code 16 g + 8 + b in
+ * its high one, each + 8. A bank stored as int4 has codes in [-7, 7], so half the bytes of
+ * its int8 codes, and one load per 16 values instead of two: a lone query's scan of the
+ * shipped complete section went from ~0.42 to ~0.26 ms warm, ~0.5 to ~0.3 ms cold
+ * (BENCHMARKS.md, 2026-12-04). Every row's sum is pgn_dots_i8's, operation for operation:
+ * the same 8-lane partial sums in index order (d % 16 == 0: no tail), the same lane tree
+ * and division, so the cosines are the int8 scan's bit for bit. */
+#if defined(__AVX2__)
+static inline void dload_nib(const uint8_t *p, dv8 *lo, dv8 *hi) {
+    const __m256i u = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const void *)p));
+    const __m256i e8 = _mm256_set1_epi32(8);
+    *lo = (dv8)_mm256_cvtepi32_ps(_mm256_sub_epi32(_mm256_and_si256(u, _mm256_set1_epi32(15)),
+                                                   e8));
+    *hi = (dv8)_mm256_cvtepi32_ps(_mm256_sub_epi32(_mm256_srli_epi32(u, 4), e8));
+}
+#else
+typedef int32_t di8 __attribute__((vector_size(32)));
+typedef uint8_t du8 __attribute__((vector_size(8)));
+static inline void dload_nib(const uint8_t *p, dv8 *lo, dv8 *hi) {
+    du8 v;
+    memcpy(&v, p, sizeof(v));
+    const di8 u = __builtin_convertvector(v, di8);
+    *lo = __builtin_convertvector((u & 15) - 8, dv8);
+    *hi = __builtin_convertvector((u >> 4) - 8, dv8);
+}
+#endif
+
+static inline __attribute__((always_inline)) void tile_nib(
+        const uint8_t *packed, const float *norms, int64_t i, int64_t n, int64_t d,
+        const float *q, int R, float *out) {
+    const int64_t rb = d / 2;
+    const uint8_t *ahead = packed + (i + 2 * R) * rb, *end = packed + n * rb;
+    for (int64_t o = 0; o < R * rb && ahead + o < end; o += 64) __builtin_prefetch(ahead + o);
+    dv8 acc[8] = {{0}};
+    for (int64_t j = 0; j < d; j += 16) {
+        const dv8 q0 = dload(q + j), q1 = dload(q + j + 8);
+        for (int r = 0; r < R; ++r) {
+            dv8 lo, hi;
+            dload_nib(packed + (i + r) * rb + j / 2, &lo, &hi);
+            acc[r] = dfma(lo, q0, acc[r]);
+            acc[r] = dfma(hi, q1, acc[r]);
+        }
+    }
+    for (int r = 0; r < R; ++r) out[i + r] = dsum(acc[r]) / norms[i + r];
+}
+
+/* packed (n, d / 2) uint8, d % 16 == 0; norms (n,) float32 > 0; q (d,) -> out (n,). */
+void pgn_dots_i4(const uint8_t *packed, const float *norms, int64_t n, int64_t d,
+                 const float *q, float *out) {
+    int64_t i = 0;
+    for (; i + 8 <= n; i += 8) tile_nib(packed, norms, i, n, d, q, 8, out);
+    for (; i < n; ++i) tile_nib(packed, norms, i, n, d, q, 1, out);
+}
