@@ -128,9 +128,8 @@ void pgn_dots_i8(const int8_t *codes, const float *norms, int64_t n, int64_t d,
 /* ---- One query against 4-bit codes, 16 values to 8 bytes (kernels.pack_nibbles) ----
  * Byte b of a row's group g holds code 16 g + b in its low nibble and code 16 g + 8 + b in
  * its high one, each + 8. A bank stored as int4 has codes in [-7, 7], so half the bytes of
- * its int8 codes, and one load per 16 values instead of two: a lone query's scan of the
- * shipped complete section went from ~0.42 to ~0.26 ms warm, ~0.5 to ~0.3 ms cold
- * (BENCHMARKS.md, 2026-12-04). Every row's sum is pgn_dots_i8's, operation for operation:
+ * its int8 codes, and one load per 16 values instead of two: a lone query of the shipped
+ * complete section takes ~0.5 ms less (BENCHMARKS.md, 2026-12-04). Every row's sum is pgn_dots_i8's, operation for operation:
  * the same 8-lane partial sums in index order (d % 16 == 0: no tail), the same lane tree
  * and division, so the cosines are the int8 scan's bit for bit. */
 #if defined(__AVX2__)
