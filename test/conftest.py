@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import ctypes
 from functools import lru_cache
 import os
 from pathlib import Path
+import subprocess
 
 import numpy as np
 import pytest
@@ -113,3 +115,33 @@ def small_bank_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     xyz, labels, names = load_modelnet_subset('train', 4)
     bank = build_bank(ArrayDataset(xyz, labels, names, str(MODELNET)), folds=2, progress=False)
     return bank.save(tmp_path_factory.mktemp('bank') / 'small_bank.npz')
+
+
+# SIMD builds of a kernel file: compile flags -> the CPU flags needed to run the build.
+# CI machines differ in which path -march=native takes; tests build each one they can run.
+KERNEL_BUILDS = {'portable': ([], set()),
+                 'avx2': (['-mavx2', '-mfma'], {'avx2', 'fma'}),
+                 'avx512bw, no vnni': (['-mavx512f', '-mavx512bw', '-mavx512vl',
+                                        '-mno-avx512vnni'], {'avx512f', 'avx512bw', 'avx512vl'}),
+                 'avx512 vnni': (['-mavx512f', '-mavx512bw', '-mavx512vl', '-mavx512vnni'],
+                                 {'avx512f', 'avx512bw', 'avx512vl', 'avx512_vnni'})}
+
+
+def kernel_build(source: str, build: str, out_dir: Path, extra: tuple[str, ...] = ()
+                 ) -> ctypes.CDLL:
+    """core/kernels/SOURCE compiled alone as KERNEL_BUILDS[build]; skips where it cannot run."""
+    from point_gn_ros.core import kernels
+
+    flags, needs = KERNEL_BUILDS[build]
+    cc = kernels._compiler()
+    if cc is None:
+        pytest.skip('no C compiler: the kernels are not built on this machine')
+    cpu = {flag for line in kernels._cpu_id().splitlines()
+           if line.startswith(('flags', 'Features')) for flag in line.split(':', 1)[1].split()}
+    if needs - cpu:
+        pytest.skip(f'this CPU cannot run the {build} build (lacks {sorted(needs - cpu)})')
+    so = out_dir / f'{Path(source).stem}.so'
+    subprocess.run([cc, '-O3', '-fPIC', '-shared', '-std=gnu11', *extra, *flags,
+                    str(Path(kernels.__file__).resolve().parent / source), '-o', str(so)],
+                   check=True, capture_output=True)
+    return ctypes.CDLL(str(so))

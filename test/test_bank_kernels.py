@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import ctypes
 from pathlib import Path
-import subprocess
 import threading
 
+from conftest import kernel_build
 import numpy as np
 import pytest
 import torch
@@ -241,20 +241,7 @@ def test_lone_scan_of_nibbles_is_the_int8_scan_bit_for_bit(lib) -> None:
 @pytest.mark.parametrize('build', ['portable', 'avx2'])
 def test_lone_scan_of_nibbles_in_other_builds(build: str, tmp_path: Path) -> None:
     """CI machines differ in the path pgn_dots.c takes: each must equal its own int8 scan."""
-    from test_scan4 import _BUILDS, _cpu_flags
-
-    flags, needs = _BUILDS[build]
-    cc = kernels._compiler()
-    if cc is None:
-        pytest.skip('no C compiler: the kernels are not built on this machine')
-    missing = needs - _cpu_flags()
-    if missing:
-        pytest.skip(f'this CPU cannot run the {build} build (lacks {sorted(missing)})')
-    so = tmp_path / 'dots.so'
-    subprocess.run([cc, '-O3', '-fPIC', '-shared', '-std=gnu11', '-fno-fast-math',
-                    '-ffp-contract=off', *flags, str(Path(kernels.__file__).parent / 'pgn_dots.c'),
-                    '-o', str(so)], check=True, capture_output=True)
-    one = ctypes.CDLL(str(so))
+    one = kernel_build('pgn_dots.c', build, tmp_path, ('-fno-fast-math', '-ffp-contract=off'))
     p, i64 = ctypes.c_void_p, ctypes.c_int64
     one.pgn_dots_i8.argtypes = [p, p, i64, i64, p, i64, p]
     one.pgn_dots_i4.argtypes = [p, p, i64, i64, p, p]

@@ -10,15 +10,14 @@ from __future__ import annotations
 
 import ctypes
 from pathlib import Path
-import subprocess
 
+from conftest import KERNEL_BUILDS, kernel_build
 import numpy as np
 import pytest
 
 from point_gn_ros.bank.index_basis import pack_codes, unpack_codes
 from point_gn_ros.core import kernels
 
-_SRC = Path(kernels.__file__).resolve().parent / 'pgn_scan4.c'
 # widths: one 16-byte chunk, a 48-byte one, 64 + 64 + 16 (the scan section's 288), 5 full
 # chunks, and 2,080 (beyond the SIMD paths' 2,048: the plain loop)
 _WIDTHS = (32, 96, 288, 640, 2080)
@@ -69,34 +68,9 @@ def test_scan_i4_equals_the_unpacked_product(r: int) -> None:
     _check(lib, r, seed=r)
 
 
-def _cpu_flags() -> set[str]:
-    """The CPU's feature flags, from the description the kernel cache is keyed by."""
-    return {flag for line in kernels._cpu_id().splitlines()
-            if line.startswith(('flags', 'Features')) for flag in line.split(':', 1)[1].split()}
-
-
-# build flags -> the CPU flags it needs to run
-_BUILDS = {'portable': ([], set()),
-           'avx2': (['-mavx2', '-mfma'], {'avx2', 'fma'}),
-           'avx512bw, no vnni': (['-mavx512f', '-mavx512bw', '-mavx512vl', '-mno-avx512vnni'],
-                                 {'avx512f', 'avx512bw', 'avx512vl'}),
-           'avx512 vnni': (['-mavx512f', '-mavx512bw', '-mavx512vl', '-mavx512vnni'],
-                           {'avx512f', 'avx512bw', 'avx512vl', 'avx512_vnni'})}
-
-
-@pytest.mark.parametrize('build', list(_BUILDS))
+@pytest.mark.parametrize('build', list(KERNEL_BUILDS))
 def test_every_simd_path_equals_the_plain_loop(build: str, tmp_path: Path) -> None:
-    flags, needs = _BUILDS[build]
-    cc = kernels._compiler()
-    if cc is None:
-        pytest.skip('no C compiler: the kernels are not built on this machine')
-    missing = needs - _cpu_flags()
-    if missing:
-        pytest.skip(f'this CPU cannot run the {build} build (lacks {sorted(missing)})')
-    so = tmp_path / 'scan4.so'
-    subprocess.run([cc, '-O3', '-fPIC', '-shared', '-std=gnu11', *flags, str(_SRC), '-o',
-                    str(so)], check=True, capture_output=True)
-    lib = ctypes.CDLL(str(so))
+    lib = kernel_build('pgn_scan4.c', build, tmp_path)
     p, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.pgn_scan_i4.restype = lib.pgn_scan_i4_multi.restype = None
     lib.pgn_scan_i4.argtypes = [p, i64, i64, p, p]
