@@ -11,12 +11,12 @@ Run: python scripts/cpu_capacity.py [--seconds 60] [--every 5]
 from __future__ import annotations
 
 import argparse
-import os
 import time
 
 import numpy as np
 
 from point_gn_ros.core import kernels
+from point_gn_ros.core.encoder import default_threads
 from point_gn_ros.core.kernels.roofline import measure_parallel_ops, measure_peaks
 
 
@@ -26,7 +26,7 @@ def main() -> None:
     p.add_argument('--every', type=float, default=5.0)
     args = p.parse_args()
     lib = kernels.load()
-    cpus = len(os.sched_getaffinity(0))
+    cpus = default_threads()
     one = measure_peaks(lib, tries=3).ops
     got = []
     end = time.monotonic() + args.seconds

@@ -7,7 +7,6 @@ lone-query bank scans. Floors are work / peaks measured in the same run
 
 from __future__ import annotations
 
-import os
 import time
 from typing import TYPE_CHECKING
 
@@ -46,7 +45,7 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
     import numpy as np
 
     from point_gn_ros.core import kernels
-    from point_gn_ros.core.encoder import PointGNEncoder
+    from point_gn_ros.core.encoder import PointGNEncoder, default_threads
     from point_gn_ros.core.kernels.roofline import (measure_parallel_ops, measure_peaks,
                                                     phase_work)
 
@@ -68,8 +67,8 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
                  unit='GB/s', note=''),
             dict(section='peaks', what='read bandwidth, 256 MB (memory)',
                  value=peaks.mem_bw / 1e9, unit='GB/s', note='')]
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else os.cpu_count()
-    together = measure_parallel_ops(lib, cpus or 1, peaks.ops, tries=2 if quick else 3)
+    cpus = default_threads()          # the CPUs this process may run on
+    together = measure_parallel_ops(lib, cpus, peaks.ops, tries=2 if quick else 3)
     cores = together / peaks.ops
     rows.append(dict(section='peaks', what=f'fp32 lane ops, {cpus} CPU(s) at once',
                      value=together / 1e9, unit='G/s',
