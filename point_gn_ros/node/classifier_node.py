@@ -22,10 +22,11 @@ to active at start, so the node runs as a plain one. Extra interfaces plug in as
 `rclpy.lifecycle.ManagedEntity`s (``ClassifierNode(extensions=...)``): they get the same
 transitions after the node's own work; `replace_recognizer()` swaps the bank between batches.
 
-Threading: subscription callbacks only enqueue (bounded per topic, dropping the
-oldest); one worker thread (node/pipeline.py, ROS-free) decodes, resamples, encodes and
-classifies in micro-batches across topics, so the executor stays responsive however slow
-the encoder is.
+Threading: an intake thread (node/intake.py), not the executor, takes the input messages
+off DDS and only enqueues them (bounded per topic, dropping the oldest); one worker thread
+(node/pipeline.py, ROS-free) decodes, resamples, encodes and classifies in micro-batches
+across topics, so the executor stays responsive however slow the encoder is, and a burst
+of input costs it nothing.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ from point_gn_ros.node.diagnostics import DiagnosticsBuilder
 from point_gn_ros.node.diagnostics_mixin import DiagnosticsMixin
 from point_gn_ros.node.frames import UpConvention
 from point_gn_ros.node.gc_pauses import freeze_startup_objects, thaw
+from point_gn_ros.node.intake import Intake, NotForExecutors
 from point_gn_ros.node.outputs import Outputs, vision_msgs_available
 from point_gn_ros.node.parameter_mixin import ParameterMixin
 from point_gn_ros.node.params import (PARAMETERS, NodeConfigError, Settings,
@@ -104,6 +106,7 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         self._active = False
         self._setting_class_names = False
         self._subs: list[Any] = []
+        self._intake: Intake | None = None
         self._pipeline: Pipeline | None = None
         self._worker: threading.Thread | None = None
         self._stop = threading.Event()
@@ -148,14 +151,17 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
             reliability=(ReliabilityPolicy.BEST_EFFORT if s.qos_reliability == 'best_effort'
                          else ReliabilityPolicy.RELIABLE),
             durability=DurabilityPolicy.VOLATILE)
-        self._subs = [
-            self.create_subscription(PointCloud2, topic,
-                                     lambda msg, i=i: self._on_cloud(i, msg), in_qos)
-            for i, topic in enumerate(s.input_topics)]
+        # Taken by the intake thread, not the executor (node/intake.py: the executor's cost
+        # per message starved the worker under bursts).
+        group = NotForExecutors()
+        self._subs = [self.create_subscription(PointCloud2, topic, _never_called, in_qos,
+                                               callback_group=group)
+                      for topic in s.input_topics]
         self._pipeline.topic_names = [sub.topic_name or topic
                                       for sub, topic in zip(self._subs, s.input_topics,
                                                             strict=True)]
         self._watchdog = InputWatchdog(len(self._subs))
+        self._intake = Intake(self.context, self._subs, self._on_cloud, self._on_intake_error)
         ret = super().on_activate(state)          # enables the lifecycle publishers
         self._active = True
         self._publish_labels()
@@ -284,6 +290,7 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
                                      self.get_clock().now().to_msg())
 
     def _destroy_subscriptions(self) -> None:
+        self._stop_intake()                 # first: it waits on the subscriptions
         for sub in self._subs:
             self.destroy_subscription(sub)
         self._subs = []
@@ -308,10 +315,13 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
     # ------------------------------------------------------------------ input
 
     def _on_cloud(self, topic_index: int, msg: PointCloud2) -> None:
-        """Subscription callback: enqueue with the receipt time, nothing else."""
+        """Each input message (intake thread): enqueue with the receipt time, nothing else."""
         self._stats.on_received(topic_index)
         self._watchdog.on_message(topic_index)
         self._queue.put(topic_index, msg)   # a message it pushes out: stats.on_dropped
+
+    def _on_intake_error(self, exc: Exception) -> None:
+        self._warn(('intake',), f'taking an input message failed: {type(exc).__name__}: {exc}')
 
     # ------------------------------------------------------------------ output
 
@@ -336,8 +346,14 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
     def destroy_node(self) -> None:
         """Stop and join the worker before the publishers it uses go away."""
         self._active = False
+        self._stop_intake()
         self._stop_worker()
         super().destroy_node()
+
+    def _stop_intake(self) -> None:
+        intake, self._intake = self._intake, None
+        if intake is not None and not intake.stop():
+            self.get_logger().warning('input intake thread did not stop')
 
     def _stop_worker(self) -> None:
         worker, self._worker = self._worker, None
@@ -354,6 +370,10 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
             log.warning(f'worker thread did not stop within {WORKER_JOIN_TIMEOUT_S:g} s')
         else:
             log.info('worker stopped')
+
+
+def _never_called(msg: PointCloud2) -> None:
+    raise AssertionError('input subscriptions are taken by the intake thread')
 
 
 def autostart(node: ClassifierNode) -> None:
