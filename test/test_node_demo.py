@@ -56,5 +56,9 @@ def test_bench_node_reports_rates_latency_and_memory(tiny_bank: Path) -> None:
     assert 0 < steady['latency_p50_ms'] <= steady['latency_p99_ms']
     assert burst['input_hz'] > 5 * steady['input_hz']
     assert burst['dropped'] > 0 and burst['answered'] > 0      # bounded queues shed load
+    # The node's own counters: at 20/s it took every message; under the burst no more than
+    # were sent, and it answered only what it took.
+    assert steady['node_taken'] == steady['sent']
+    assert burst['answered'] <= burst['node_taken'] <= burst['sent']
     assert all(r['node_peak_rss_mb'] > 50 for r in rows)
     assert 'burst' in format_rows(rows)

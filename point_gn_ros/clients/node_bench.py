@@ -31,6 +31,7 @@ def _run_phase(client: Client, node: NodeLauncher, clouds: Sequence[np.ndarray],
     """Publish at rate_hz for duration_s, then wait up to drain_s for the last answers."""
     period = 1.0 / rate_hz
     sent: dict[tuple[int, int], float] = {}
+    taken0 = int(client.fresh_counters().get('received', -1))
     cpu0 = node.cpu_s()
     start = time.monotonic()
     next_t = start
@@ -66,6 +67,8 @@ def _run_phase(client: Client, node: NodeLauncher, clouds: Sequence[np.ndarray],
     p50, p99 = percentiles_ms(latencies)
     finished = max((r for r, _ in got), default=end_send)
     elapsed = max(finished - start, 1e-9)
+    cpu1 = node.cpu_s()
+    taken1 = int(client.fresh_counters().get('received', -1))
     return {
         'duration_s': round(end_send - start, 3),
         'sent': len(sent),
@@ -76,7 +79,11 @@ def _run_phase(client: Client, node: NodeLauncher, clouds: Sequence[np.ndarray],
         'latency_p50_ms': round(p50, 2),
         'latency_p99_ms': round(p99, 2),
         # Node CPU per answered message: what the node costs, whatever else the box runs.
-        'node_cpu_ms_per_answer': round(1e3 * (node.cpu_s() - cpu0) / max(len(got), 1), 2),
+        'node_cpu_ms_per_answer': round(1e3 * (cpu1 - cpu0) / max(len(got), 1), 2),
+        # What the node took off DDS (its 'received' counter; -1: no /diagnostics report).
+        # sent - taken were lost before the node saw them (a full reader history);
+        # taken - answered the node dropped from its queue, and counted.
+        'node_taken': taken1 - taken0 if min(taken0, taken1) >= 0 else -1,
     }
 
 
@@ -90,11 +97,12 @@ def bench_node(rates: Sequence[float] = (10, 30, 100), duration_s: float = 10.0,
 
     Returns one dict per phase: mode ('rate' | 'burst'), target_hz, input_hz (achieved),
     duration_s, sent, answered, dropped (sent - answered: dropped by the node's queues or
-    lost), throughput_hz (answers per second from first send to last answer),
+    lost), node_taken (messages the node took off DDS, by its /diagnostics counters; -1
+    without a report), throughput_hz (answers per second from first send to last answer),
     latency_p50_ms / latency_p99_ms (publish -> answer received), node_cpu_ms_per_answer
-    (node process CPU time over the phase / answers), node_peak_rss_mb (VmHWM
-    of the node process after that phase; cumulative), plus node_startup_s and the node
-    parameters used. Raises RuntimeError if the node does not start.
+    (node process CPU time over the phase / answers), node_peak_rss_mb (VmHWM of the node
+    process after that phase; cumulative), plus node_startup_s and the node parameters
+    used. Raises RuntimeError if the node does not start.
     """
     from point_gn_ros.clients.demo import _bank_num_points
 
@@ -142,12 +150,13 @@ def bench_node(rates: Sequence[float] = (10, 30, 100), duration_s: float = 10.0,
 def format_rows(rows: Sequence[dict[str, Any]]) -> str:
     """A plain-text table of bench_node() results."""
     head = (f'{"mode":<6} {"target":>7} {"input":>7} {"sent":>5} {"answered":>8} '
-            f'{"dropped":>7} {"thru/s":>7} {"p50 ms":>8} {"p99 ms":>8} {"CPU ms":>7} '
+            f'{"dropped":>7} {"taken":>6} {"thru/s":>7} {"p50 ms":>8} {"p99 ms":>8} {"CPU ms":>7} '
             f'{"RSS MB":>7}')
     lines = [head]
     for r in rows:
         lines.append(f'{r["mode"]:<6} {r["target_hz"]:>7g} {r["input_hz"]:>7.1f} '
                      f'{r["sent"]:>5} {r["answered"]:>8} {r["dropped"]:>7} '
+                     f'{r["node_taken"]:>6} '
                      f'{r["throughput_hz"]:>7.1f} {r["latency_p50_ms"]:>8.1f} '
                      f'{r["latency_p99_ms"]:>8.1f} {r["node_cpu_ms_per_answer"]:>7.2f} '
                      f'{r["node_peak_rss_mb"]:>7.0f}')
@@ -170,7 +179,8 @@ def bench_rows(quick: bool = False, **kwargs: Any) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
     for r in results:
         label = f'node {r["target_hz"]:g} Hz in' if r['mode'] == 'rate' else 'node burst'
-        note = (f'{r["answered"]}/{r["sent"]} answered, {r["dropped"]} dropped, input '
+        note = (f'{r["answered"]}/{r["sent"]} answered, {r["node_taken"]} taken by the node, '
+                f'{r["dropped"]} dropped, input '
                 f'{r["input_hz"]:.0f}/s, reliable, DDS, 1 process')
         rows += [dict(section='node', what=f'{label}: answered', value=r['throughput_hz'],
                       unit='msg/s', note=note),

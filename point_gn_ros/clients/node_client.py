@@ -182,6 +182,9 @@ class Client:
         self.publisher = self.node.create_publisher(PointCloud2, topic, qos)
         self.answers: dict[tuple[int, int], Answer] = {}
         self.class_names: list[str] | None = None
+        # The node's own counters (its /diagnostics pipeline status) and when they came.
+        self.counters: dict[str, str] = {}
+        self.counters_received = 0.0
         self.node.create_subscription(
             PointCloud2, f'{NODE_FQN}/classifications', self._on_answer,
             QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
@@ -189,7 +192,21 @@ class Client:
             String, f'{NODE_FQN}/class_names', self._on_names,
             QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        from diagnostic_msgs.msg import DiagnosticArray
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
         self._seq = 0
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        for status in msg.status:
+            if status.name == f'{NODE_FQN}: pipeline':
+                self.counters = {kv.key: kv.value for kv in status.values}
+                self.counters_received = time.monotonic()
+
+    def fresh_counters(self, timeout: float = 3.0) -> dict[str, str]:
+        """The node's counters from a report sent after this call ({} if none came)."""
+        since = time.monotonic()
+        self.spin_until(lambda: self.counters_received > since, timeout)
+        return self.counters if self.counters_received > since else {}
 
     def _on_answer(self, msg: Any) -> None:
         self.answers[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = Answer(
