@@ -304,3 +304,17 @@ def test_the_lone_cloud_helper_is_kept_off_its_callers_cpu(real_clouds: np.ndarr
         th.join()
     for cpu in cpus[:2]:
         assert seen[cpu] == set(cpus) - {cpu}
+
+
+def test_batch_workers_are_named_for_the_os(real_clouds: np.ndarray) -> None:
+    # `top -H` on a robot tells the encoder's workers from the node's other threads
+    _kernels_or_skip()
+    if not Path('/proc/self/task').is_dir():
+        pytest.skip('needs Linux (/proc/self/task/*/comm)')
+    cfg = EncoderConfig()
+    xyz = torch.from_numpy(np.stack([prepare(c, n=cfg.num_points) for c in real_clouds[:4]]))
+    encoder = PointGNEncoder(cfg, threads=2)
+    encoder.encode(xyz)
+    names = {(task / 'comm').read_text().strip() for task in Path('/proc/self/task').iterdir()}
+    encoder.close()
+    assert {'point_gn_enc_0', 'point_gn_enc_1'} <= names

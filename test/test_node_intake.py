@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -16,6 +16,10 @@ __all__ = ['tiny_bank']  # fixture, imported so that pytest finds it
 
 def _intake_threads() -> list[threading.Thread]:
     return [t for t in threading.enumerate() if t.name == 'point_gn_intake']
+
+
+def _os_thread_names() -> set[str]:
+    return {(task / 'comm').read_text().strip() for task in Path('/proc/self/task').iterdir()}
 
 
 def test_clouds_are_answered_while_the_executor_is_blocked(tiny_bank: Path) -> None:
@@ -45,6 +49,8 @@ def test_clouds_are_answered_while_the_executor_is_blocked(tiny_bank: Path) -> N
         assert not _intake_threads()                 # nothing taken before activate
         assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
         assert len(_intake_threads()) == 1
+        # named for the OS too, so that `top -H` tells the node's threads apart
+        assert {'point_gn_intake', 'point_gn_worker'} <= _os_thread_names()
 
         # Another participant, spun by its own executor; the classifier node by none.
         client = rclpy.create_node('intake_test', context=context)

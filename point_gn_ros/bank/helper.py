@@ -20,6 +20,7 @@ import os
 import threading
 
 from point_gn_ros.core.encoder import default_threads
+from point_gn_ros.core.threads import name_os_thread
 
 _NAME = 'pgn_helper'
 _pool: ThreadPoolExecutor | None = None
@@ -69,7 +70,8 @@ def helper_thread() -> ThreadPoolExecutor | None:
         return None
     with _lock:
         if _pool is None and default_threads() > 1:
-            _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=_NAME)
+            _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=_NAME,
+                                       initializer=name_os_thread)
             if hasattr(os, 'sched_setaffinity'):
                 _cpus = set(os.sched_getaffinity(0))
                 _tid = _pool.submit(threading.get_native_id).result()

@@ -25,6 +25,7 @@ from point_gn_ros.bank.enroll import (BankFile, EnrollResult, RefitPolicy, activ
 from point_gn_ros.bank import ridge
 from point_gn_ros.bank.rows import with_room
 from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.core.threads import name_os_thread
 
 Model = TypeVar('Model')
 log = logging.getLogger(__name__)
@@ -130,6 +131,7 @@ class LiveBank(Generic[Model]):
         The (N, N) solve runs outside the lock (readers and writers go on); if the bank
         changed meanwhile, the newer version is refitted instead.
         """
+        name_os_thread()
         while True:
             snap = self._snap
             if not _pending(snap.file):

@@ -29,6 +29,7 @@ from torch.nn import functional
 from point_gn_ros.core import kernels
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.encoder_naive import gpe, gpe_centres
+from point_gn_ros.core.threads import name_os_thread
 
 Backend = Literal['auto', 'kernel', 'torch']
 _log = logging.getLogger(__name__)
@@ -208,7 +209,8 @@ class PointGNEncoder:
     def _get_pool(self) -> ThreadPoolExecutor:
         with self._pool_lock:
             if self._pool is None:
-                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix='point_gn')
+                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix='point_gn_enc',
+                                                initializer=name_os_thread)
             return self._pool
 
     def close(self) -> None:

@@ -30,6 +30,7 @@ from point_gn_ros.bank.enroll import EnrollError, EnrollResult
 from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.core.fusion import with_fused
+from point_gn_ros.core.threads import name_os_thread
 from point_gn_ros.errors import PointGNError
 
 # How long a service waits for the committer (forget, save) before answering "still running".
@@ -86,7 +87,8 @@ class EnrollEngine:
         self._requests: deque[_Request] = deque()
         self._pending = 0
         self._capture: _Capture | None = None
-        self._committer = ThreadPoolExecutor(max_workers=1, thread_name_prefix='point_gn_enroll')
+        self._committer = ThreadPoolExecutor(max_workers=1, thread_name_prefix='point_gn_enroll',
+                                             initializer=name_os_thread)
         self.counters = {'enrolled': 0, 'enrollments': 0, 'refused': 0, 'near_duplicates': 0,
                          'removed_classes': 0, 'saves': 0, 'errors': 0, 'fused': 0,
                          'not_fused': 0}

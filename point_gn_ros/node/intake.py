@@ -21,6 +21,8 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
+from point_gn_ros.core.threads import name_os_thread
+
 # How long one wait may block (s): bounds how late a shut-down context is noticed.
 WAIT_TIMEOUT_NS = 500_000_000
 
@@ -72,6 +74,7 @@ class Intake:
         return ended
 
     def _run(self) -> None:
+        name_os_thread()
         subs = self._subs
         with ExitStack() as held:
             # Held: a subscription is not freed while this thread can still wait on it.

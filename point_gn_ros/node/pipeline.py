@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from point_gn_ros.core.threads import name_os_thread
 from point_gn_ros.errors import DecodeError
 from point_gn_ros.node.frames import to_z_up
 from point_gn_ros.node.params import Settings, resolve_unknown_threshold
@@ -130,6 +131,7 @@ class Pipeline:
         alive(): False once the middleware is shut down (a failure then ends the loop
         quietly instead of being reported).
         """
+        name_os_thread()
         busy = False
         while not self._stop.is_set():
             items = queue.take(self.settings.max_batch, timeout=0.0 if busy else 0.5)
