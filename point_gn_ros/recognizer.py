@@ -5,7 +5,7 @@ This is what the ROS node, the CLI and the rosbag tools call; it holds no ROS co
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 import os
 import time
 from typing import Protocol
@@ -153,3 +153,21 @@ class Recognizer:
             return self.classifier.classify(torch.zeros(0, self.encoder.cfg.feature_dim),
                                             self.top_k)
         return self.classifier.classify(self.encode(clouds), self.top_k)
+
+    def classify_later(self, clouds: Sequence[np.ndarray]) -> Callable[[], Classification]:
+        """`classify_clouds(clouds)` in two parts: started now, finished by the returned call.
+
+        The clouds are prepared and their encoding started on the encoder's workers now; the
+        returned call waits for it and classifies. Between the two the caller can finish an
+        earlier batch (node/pipeline.py), so that the encoder's threads and the caller's work
+        overlap. The same answers, bit for bit.
+        """
+        start = getattr(self.encoder, 'encode_later', None)
+        if not clouds or start is None:
+            result = self.classify_clouds(clouds)
+            return lambda: result
+        cfg = self.encoder.cfg
+        batch = np.stack([prepare(c, cfg.num_points, self.resample, 0, cfg.yaw_align,
+                                  cfg.upsample) for c in clouds])
+        features = start(torch.from_numpy(batch))
+        return lambda: self.classifier.classify(features(), self.top_k)

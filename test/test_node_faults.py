@@ -52,6 +52,15 @@ class Poisoned:
             raise RuntimeError('injected classification failure')
         return self.inner.classify_clouds(clouds)
 
+    def classify_later(self, clouds: list[np.ndarray]) -> Any:
+        # the node's overlapped path: the failure comes with the answer, not the start
+        later = self.inner.classify_later(clouds)
+        if any(len(c) == self.POISON for c in clouds):
+            def fail() -> Any:
+                raise RuntimeError('injected classification failure')
+            return fail
+        return later
+
 
 def _settings(**over: Any) -> Any:
     values = {name: default for name, (default, _, _) in PARAMETERS.items()}
@@ -236,3 +245,46 @@ def test_identity_holds_at_every_instant_under_concurrency(recognizer: Any) -> N
     assert sum(snap.received) == 120 and snap.in_flight == 0
     assert sum(snap.dropped) > 0 and snap.failed.get('classify', 0) > 0
     assert snap.answered + sum(snap.dropped) + sum(snap.failed.values()) == 120
+
+
+def test_overlapped_batches_answer_in_order_as_one_at_a_time(recognizer: Any) -> None:
+    """A backlog is served overlapped: the same answers, bit for bit, in message order.
+
+    Each batch's encoding overlaps the answers of the one before (recognizer.
+    classify_later); the reference is the same batches of 4 taken one at a time.
+    """
+    rng = np.random.default_rng(6)
+    msgs = [_msg(i, 30 + 7 * i, rng) for i in range(24)]
+    alone = Harness(recognizer)
+    for i in range(0, len(msgs), 4):
+        alone.run(msgs[i:i + 4])
+
+    started = []
+
+    class Counting(Poisoned):
+        def classify_later(self, clouds: list[np.ndarray]) -> Any:
+            started.append(len(clouds))
+            return super().classify_later(clouds)
+
+    h = Harness(Counting(recognizer), max_batch=4)
+    order: list[int] = []
+    publish = h.publish
+    h.publish = lambda answer: (publish(answer), order.append(answer.job.item.payload.index))
+    for m in msgs:          # all waiting before the worker starts: a backlog
+        h.put(m)
+    worker = threading.Thread(target=h.pipeline.serve, args=(h.queue, h.publish))
+    worker.start()
+    deadline = time.monotonic() + 60
+    while len(h.answers) < len(msgs) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    h.stop.set()
+    worker.join(5)
+    assert len(started) >= 5                  # batches were started ahead, 4 messages each
+    assert order == list(range(len(msgs)))
+    for i, answer in h.answers.items():
+        want = alone.answers[i]
+        np.testing.assert_array_equal(answer.labels, want.labels)
+        np.testing.assert_array_equal(answer.scores, want.scores)
+        np.testing.assert_array_equal(answer.topk_ids, want.topk_ids)
+    snap = h.stats.snapshot([0])
+    assert snap.answered == len(msgs) and snap.in_flight == 0 and snap.unaccounted() == 0

@@ -15,6 +15,7 @@ Two back-ends compute the same function:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 import logging
 import os
@@ -133,22 +134,33 @@ class PointGNEncoder:
 
         Clouds must already be resampled and normalised (sampling.prepare).
         """
+        return self.encode_later(xyz, overlap=False)()
+
+    @torch.no_grad()
+    def encode_later(self, xyz: torch.Tensor, overlap: bool = True) -> Callable[[], torch.Tensor]:
+        """`encode(xyz)` started now on the worker threads; the returned call waits for it.
+
+        overlap: a batch of two or more clouds runs on the worker pool while the caller goes
+        on (the node classifies the batch before meanwhile); otherwise, and for one cloud
+        (which the caller shares with a helper, `_run_lone`), it is encoded before returning.
+        The features are the same bits either way. Invalid clouds raise here.
+        """
         xyz = torch.as_tensor(xyz)
         if xyz.ndim != 3 or xyz.shape[1] != self.cfg.num_points or xyz.shape[2] != 3:
             raise ValueError(f'expected clouds of shape (B, {self.cfg.num_points}, 3), '
                              f'got {tuple(xyz.shape)}')
         if xyz.shape[0] == 0:
-            return torch.zeros(0, self.cfg.feature_dim)
+            return _done(torch.zeros(0, self.cfg.feature_dim))
         if self.backend == 'kernel':
             # numpy, not torch, for the checks: a torch op on a large batch wakes torch's
             # OpenMP pool, whose spinning threads then steal the cores from the kernels.
             arr = np.ascontiguousarray(xyz.detach().cpu().numpy(), dtype=np.float32)
             if not np.isfinite(arr).all():
                 raise ValueError('clouds contain NaN or infinite coordinates')
-            return self._encode_kernel(arr)
+            return self._encode_kernel(arr, overlap)
         if not bool(torch.isfinite(xyz).all()):
             raise ValueError('clouds contain NaN or infinite coordinates')
-        return _encode_torch(xyz.to(self.device, torch.float32), self.cfg).cpu()
+        return _done(_encode_torch(xyz.to(self.device, torch.float32), self.cfg).cpu())
 
     # -- kernel back-end -------------------------------------------------------------------
 
@@ -186,8 +198,9 @@ class PointGNEncoder:
         if rc != 0:
             raise MemoryError('Point-GN kernel could not allocate its work space')
 
-    def _encode_kernel(self, arr: np.ndarray) -> torch.Tensor:
-        """arr: (B, num_points, 3) float32 C-contiguous -> (B, feature_dim)."""
+    def _encode_kernel(self, arr: np.ndarray, overlap: bool = False
+                       ) -> Callable[[], torch.Tensor]:
+        """arr: (B, num_points, 3) float32 C-contiguous -> call giving (B, feature_dim)."""
         out = np.empty((arr.shape[0], self.cfg.feature_dim), dtype=np.float32)
         workers = min(self.threads, arr.shape[0])
         if arr.shape[0] == 1 and self._lone_threads() == 2:
@@ -202,9 +215,13 @@ class PointGNEncoder:
             pool = self._get_pool()
             futures = [pool.submit(self._run_chunk, arr[a:b], out[a:b])
                        for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
-            for fut in futures:
-                fut.result()
-        return torch.from_numpy(out)
+
+            def wait() -> torch.Tensor:
+                for fut in futures:
+                    fut.result()
+                return torch.from_numpy(out)
+            return wait if overlap else _done(wait())
+        return _done(torch.from_numpy(out))
 
     def _get_pool(self) -> ThreadPoolExecutor:
         with self._pool_lock:
@@ -224,6 +241,11 @@ class PointGNEncoder:
         pool = getattr(self, '_pool', None)
         if pool is not None:
             pool.shutdown(wait=False)
+
+
+def _done(features: torch.Tensor) -> Callable[[], torch.Tensor]:
+    """An encode_later result that is already there."""
+    return lambda: features
 
 
 # -- torch back-end (any device) ---------------------------------------------------------------

@@ -95,7 +95,9 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                                     "transport) or 'best_effort' (objects > ~600 KB can be "
                                     'lost to fragmentation; docs/NODE.md).',
                         {'additional_constraints': "one of 'best_effort', 'reliable'"}),
-    'qos_depth': (5, 'Input (and output) QoS history depth.',
+    'qos_depth': (20, 'Input (and output) QoS history depth: what DDS holds for the node '
+                      'while its intake thread is not scheduled; the counted dropping is '
+                      "queue_size's.",
                   {'integer_range': _int_range(1, 1000)}),
     'torch_threads': (1, 'Torch intra-op threads (the classifier). 1: its per-batch products '
                          'are small, and a second torch thread spins instead of working '

@@ -13,7 +13,7 @@ into messages.
 from __future__ import annotations
 
 from collections.abc import Callable, Hashable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import re
 import threading
 from typing import Any
@@ -69,6 +69,27 @@ class Answer:
 Results = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
+@dataclass
+class Batch:
+    """One micro-batch of messages between `Pipeline.start` and `Pipeline.finish`."""
+
+    items: Sequence[QueueItem[Any]]
+    jobs: list[Job] = field(default_factory=list)
+    size: int = 0                                    # objects to classify
+    # each max_batch chunk's started classification (recognizer.classify_later)
+    later: list[Callable[[], Any]] | None = None
+    error: Exception | None = None                   # starting it failed: per message
+    overlapped: bool = False                         # encoding on the encoder's threads
+
+
+def _now(classify: Callable[[Any], Any]) -> Callable[[Any], Callable[[], Any]]:
+    """classify(clouds) done at once, in classify_later's form."""
+    def start(clouds: Any) -> Callable[[], Any]:
+        result = classify(clouds)
+        return lambda: result
+    return start
+
+
 class Pipeline:
     """Turns queued PointCloud2 messages into Answers (thread: the worker).
 
@@ -87,7 +108,7 @@ class Pipeline:
         self._stats = stats
         self._warn = warn
         self._stop = stop
-        self._unsettled: set[int] = set()   # ids of this batch's messages not yet settled
+        self._unsettled: set[int] = set()   # ids of started messages not yet settled
         self._pending: tuple[Settings, Any] | None = None
         self._pending_lock = threading.Lock()
         # Optional worker hooks (node/enrollment.py): observe(jobs) sees each prepared
@@ -128,36 +149,96 @@ class Pipeline:
               alive: Callable[[], bool] = lambda: True) -> None:
         """Worker thread body: take micro-batches until stopped; never dies on one bad batch.
 
-        alive(): False once the middleware is shut down (a failure then ends the loop
-        quietly instead of being reported).
+        While messages keep coming, a batch is started (prepared, its encoding begun on the
+        encoder's threads) before the one ahead of it is answered (classified, published),
+        so that the encoder's threads and this one work at the same time; a batch alone is
+        answered at once. Answers keep the order of the batches. alive(): False once the
+        middleware is shut down (a failure then ends the loop quietly instead of being
+        reported).
         """
         name_os_thread()
         busy = False
+        ahead: Batch | None = None       # started, answered after the next one is started
         while not self._stop.is_set():
-            items = queue.take(self.settings.max_batch, timeout=0.0 if busy else 0.5)
-            try:
-                if items:
-                    self.process(items, publish)
-            except Exception as exc:  # noqa: BLE001 - the node must outlive any one batch
-                if self._stop.is_set() or not alive():
+            items = queue.take(self.settings.max_batch,
+                               timeout=0.0 if busy or ahead is not None else 0.5)
+            batch = None
+            if items:
+                if ahead is not None and self._update_waiting():
+                    # a new bank or settings: the batch ahead is answered with its own first
+                    if not self._answer(ahead, publish, alive):
+                        return
+                    ahead = None
+                batch = Batch(items)
+                # a backlog (more than one message came while the last batch ran)
+                overlap = ahead is not None or len(items) > 1 or any(queue.depths())
+                if not self._guarded(batch, lambda b=batch, o=overlap: self.start(b, o), alive):
                     return
-                # A bug outside the per-message guards: what is still unsettled fails here.
-                for item in items:
-                    if id(item) in self._unsettled:
-                        self.fail(item, 'internal', exc)
-            finally:
-                self._unsettled.clear()
+            if ahead is not None:
+                if not self._answer(ahead, publish, alive):
+                    return
+                ahead = None
+            if batch is not None:
+                if batch.overlapped:
+                    ahead = batch
+                elif not self._answer(batch, publish, alive):
+                    return
             busy = self.between_batches is not None and self.between_batches()
+
+    def _answer(self, batch: Batch, publish: Callable[[Answer], None],
+                alive: Callable[[], bool]) -> bool:
+        """finish(batch) guarded; the batch is done with either way. False: stop."""
+        try:
+            return self._guarded(batch, lambda: self.finish(batch, publish), alive)
+        finally:
+            self._forget(batch)
+
+    def _guarded(self, batch: Batch, step: Callable[[], None], alive: Callable[[], bool]
+                 ) -> bool:
+        """step(); an exception fails what of the batch is still unsettled. False: stop."""
+        try:
+            step()
+        except Exception as exc:  # noqa: BLE001 - the node must outlive any one batch
+            if self._stop.is_set() or not alive():
+                return False
+            # A bug outside the per-message guards: what is still unsettled fails here.
+            for item in batch.items:
+                if id(item) in self._unsettled:
+                    self.fail(item, 'internal', exc)
+            self._forget(batch)
+        return True
+
+    def _forget(self, batch: Batch) -> None:
+        for item in batch.items:
+            self._unsettled.discard(id(item))
+
+    def _update_waiting(self) -> bool:
+        with self._pending_lock:
+            return self._pending is not None
 
     def process(self, items: Sequence[QueueItem[Any]], publish: Callable[[Answer], None]
                 ) -> None:
-        """Prepare, classify and publish one micro-batch of messages.
+        """Prepare, classify and publish one micro-batch of messages, now.
 
         Each message is settled exactly once (answered, rejected or failed at a stage) unless
         the node stops first; a failure costs only the message it belongs to.
         """
+        batch = Batch(items)
+        try:
+            self.start(batch, overlap=False)
+            self.finish(batch, publish)
+        finally:
+            self._forget(batch)
+
+    def start(self, batch: Batch, overlap: bool) -> None:
+        """Decode and split the batch's messages and start classifying their objects.
+
+        overlap: the encoding runs on the encoder's threads after this returns (`finish`
+        waits for it); else it is done here.
+        """
         self._apply_pending()
-        self._unsettled = {id(item) for item in items}
+        items = batch.items
+        self._unsettled.update(id(item) for item in items)
         jobs = []
         for item in items:
             try:
@@ -172,15 +253,33 @@ class Pipeline:
                 self.observe(jobs)
             except Exception as exc:  # noqa: BLE001 - capture must not cost answers
                 self._warn(('observe',), f'enrollment capture failed: {exc!r}')
+        batch.jobs = jobs
         if not jobs:
             return
+        clouds = [c for job in jobs for c in job.model_clouds()]
+        batch.size = len(clouds)
         try:
-            results = self.classify([c for job in jobs for c in job.model_clouds()])
-        except Exception as exc:  # noqa: BLE001 - retried message by message below
+            batch.later = self._classify_later(clouds, overlap)
+        except Exception as exc:  # noqa: BLE001 - retried message by message in finish
+            batch.error = exc
+        batch.overlapped = overlap and batch.later is not None
+
+    def finish(self, batch: Batch, publish: Callable[[Answer], None]) -> None:
+        """Classify the started batch (waiting for its encoding) and publish its answers."""
+        jobs = batch.jobs
+        if not jobs:
+            return
+        results = None
+        if batch.error is None:
+            try:
+                results = self._collect(batch)
+            except Exception as exc:  # noqa: BLE001 - retried message by message below
+                batch.error = exc
+        if batch.error is not None:
             if self._stop.is_set():
                 return
             if len(jobs) == 1:
-                self.fail(jobs[0].item, 'classify', exc)
+                self.fail(jobs[0].item, 'classify', batch.error)
                 return
             # One message broke the batch: classify message by message, so only that
             # message is lost and its batch-mates are still answered.
@@ -273,17 +372,31 @@ class Pipeline:
 
         None when the node is stopping.
         """
+        batch = Batch([])
+        batch.size = len(clouds)
+        batch.later = self._classify_later(clouds, overlap=False)
+        return self._collect(batch)
+
+    def _classify_later(self, clouds: list[np.ndarray], overlap: bool
+                        ) -> list[Callable[[], Any]]:
+        """Each max_batch chunk of clouds started (recognizer.classify_later), in order."""
         s = self.settings
         recognizer = self.recognizer
-        k = min(s.top_k, len(recognizer.class_names))
+        step = recognizer.classify_later if overlap else _now(recognizer.classify_clouds)
+        return [step(clouds[start:start + s.max_batch])
+                for start in range(0, len(clouds), s.max_batch)]
+
+    def _collect(self, batch: Batch) -> Results | None:
+        """The started chunks' results, concatenated; None when the node is stopping."""
+        k = min(self.settings.top_k, len(self.recognizer.class_names))
         parts = [(np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, k), np.int64),
                   np.zeros((0, k), np.float32))]
-        for start in range(0, len(clouds), s.max_batch):
+        for later in batch.later or []:
             if self._stop.is_set():
                 return None
-            res = recognizer.classify_clouds(clouds[start:start + s.max_batch])
+            res = later()
             parts.append((res.labels, res.scores, res.topk_ids, res.topk_scores))
-        self._stats.on_batch(len(clouds))
+        self._stats.on_batch(batch.size)
         return tuple(np.concatenate(column) for column in zip(*parts, strict=True))
 
     @staticmethod
