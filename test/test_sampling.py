@@ -43,6 +43,21 @@ def test_fps_matches_the_oracle_encoder_fps() -> None:
     np.testing.assert_array_equal(ours, oracle)
 
 
+@pytest.mark.parametrize('n', [63, 64, 65, 130, 1000, 5000])
+@pytest.mark.parametrize('kind', ['normal', 'grid', 'duplicated'])
+def test_compiled_fps_ties_like_the_oracle(n: int, kind: str) -> None:
+    # the vector loops (AVX-512: 4 chains of 16 lanes, a scalar tail) keep each lane's first
+    # maximum and merge by (distance, lowest index): exact ties must go where the oracle's do
+    cloud = _cloud(n, 5)
+    if kind == 'grid':           # coordinates on a coarse grid: many equal distances
+        cloud = np.round(cloud * 2) / 2
+    elif kind == 'duplicated':   # every point twice
+        cloud[n // 2:] = cloud[:n - n // 2]
+    m = min(n, 300)
+    np.testing.assert_array_equal(fps_indices(cloud, m),
+                                  oracle_fps(torch.from_numpy(cloud), m).numpy())
+
+
 def test_fps_start_is_geometric_so_order_does_not_matter() -> None:
     cloud = _cloud(3000, 4)
     perm = np.random.default_rng(1).permutation(len(cloud))

@@ -160,11 +160,85 @@ static void fps_from_avx2(const float *x, const float *y, const float *z, int64_
 }
 #endif
 
+#if defined(__AVX512F__)
+/* fps_from_avx2 with 16 lanes and masks: the running (max, first index) per lane in four
+ * chains of 16 points, merged once per step. Same distances (mul, then add: no
+ * contraction), same first maximum. pgn_fps_from's block loop spent a horizontal max and
+ * a branch per 16 points (BENCHMARKS.md, "FPS on AVX-512"). */
+static inline void fps_merge16(__m512 *bv, __m512i *bi, __m512 v, __m512i i) {
+    const __mmask16 take = _mm512_cmp_ps_mask(v, *bv, _CMP_GT_OQ)
+                           | (_mm512_cmp_ps_mask(v, *bv, _CMP_EQ_OQ)
+                              & _mm512_cmpgt_epi32_mask(*bi, i));
+    *bv = _mm512_mask_mov_ps(*bv, take, v);
+    *bi = _mm512_mask_mov_epi32(*bi, take, i);
+}
+
+static void fps_from_avx512(const float *x, const float *y, const float *z, int64_t n,
+                            int64_t m, int64_t cur, int64_t *idx, float *min_d) {
+    const int64_t n64 = n / 64 * 64;
+    const __m512i lane = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    const __m512i step = _mm512_set1_epi32(64);
+    for (int64_t it = 0; it < m; ++it) {
+        idx[it] = cur;
+        const float px = x[cur], py = y[cur], pz = z[cur];
+        const __m512 vx = _mm512_set1_ps(px), vy = _mm512_set1_ps(py), vz = _mm512_set1_ps(pz);
+        __m512 bv[4];
+        __m512i bi[4], vi[4];
+        for (int j = 0; j < 4; ++j) {
+            bv[j] = _mm512_set1_ps(-1.0f);
+            bi[j] = _mm512_setzero_si512();
+            vi[j] = _mm512_add_epi32(lane, _mm512_set1_epi32(16 * j));
+        }
+        for (int64_t i = 0; i < n64; i += 64) {
+            for (int j = 0; j < 4; ++j) {
+                const int64_t o = i + 16 * j;
+                const __m512 dx = _mm512_sub_ps(_mm512_loadu_ps(x + o), vx);
+                const __m512 dy = _mm512_sub_ps(_mm512_loadu_ps(y + o), vy);
+                const __m512 dz = _mm512_sub_ps(_mm512_loadu_ps(z + o), vz);
+                __m512 d = _mm512_mul_ps(dx, dx);
+                d = _mm512_add_ps(d, _mm512_mul_ps(dy, dy));
+                d = _mm512_add_ps(d, _mm512_mul_ps(dz, dz));
+                /* the first step starts from +inf in the oracle: min(inf, d) = d */
+                const __m512 md = it == 0 ? d : _mm512_min_ps(d, _mm512_loadu_ps(min_d + o));
+                _mm512_storeu_ps(min_d + o, md);
+                /* strictly greater: each lane keeps its first maximum */
+                const __mmask16 gt = _mm512_cmp_ps_mask(md, bv[j], _CMP_GT_OQ);
+                bv[j] = _mm512_mask_mov_ps(bv[j], gt, md);
+                bi[j] = _mm512_mask_mov_epi32(bi[j], gt, vi[j]);
+                vi[j] = _mm512_add_epi32(vi[j], step);
+            }
+        }
+        fps_merge16(&bv[0], &bi[0], bv[1], bi[1]);
+        fps_merge16(&bv[2], &bi[2], bv[3], bi[3]);
+        fps_merge16(&bv[0], &bi[0], bv[2], bi[2]);
+        float v16[16];
+        int32_t i16[16];
+        _mm512_storeu_ps(v16, bv[0]);
+        _mm512_storeu_si512((void *)i16, bi[0]);
+        float best = v16[0];
+        int64_t bix = i16[0];
+        for (int l = 1; l < 16; ++l)
+            if (v16[l] > best || (v16[l] == best && i16[l] < bix)) { best = v16[l]; bix = i16[l]; }
+        for (int64_t i = n64; i < n; ++i) {  /* the tail: indices above all others */
+            const float md = fps_update(x, y, z, i, px, py, pz, it, min_d);
+            if (md > best) { best = md; bix = i; }
+        }
+        cur = bix;
+    }
+}
+#endif
+
 void pgn_fps_from(const float *x, const float *y, const float *z, int64_t n, int64_t m,
                   int64_t cur, int64_t *idx, float *min_d) {
 #if defined(__AVX2__) && !defined(__AVX512F__)
     if (n >= 32) {
         fps_from_avx2(x, y, z, n, m, cur, idx, min_d);
+        return;
+    }
+#endif
+#if defined(__AVX512F__)
+    if (n >= 64) {
+        fps_from_avx512(x, y, z, n, m, cur, idx, min_d);
         return;
     }
 #endif
