@@ -152,11 +152,13 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
                          else ReliabilityPolicy.RELIABLE),
             durability=DurabilityPolicy.VOLATILE)
         # Taken by the intake thread, not the executor (node/intake.py: the executor's cost
-        # per message starved the worker under bursts).
+        # per message starved the worker under bursts). The callback is the same enqueue, so
+        # an executor that ignored callback groups would still count and queue each message.
         group = NotForExecutors()
-        self._subs = [self.create_subscription(PointCloud2, topic, _never_called, in_qos,
+        self._subs = [self.create_subscription(PointCloud2, topic,
+                                               lambda msg, i=i: self._on_cloud(i, msg), in_qos,
                                                callback_group=group)
-                      for topic in s.input_topics]
+                      for i, topic in enumerate(s.input_topics)]
         self._pipeline.topic_names = [sub.topic_name or topic
                                       for sub, topic in zip(self._subs, s.input_topics,
                                                             strict=True)]
@@ -370,10 +372,6 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
             log.warning(f'worker thread did not stop within {WORKER_JOIN_TIMEOUT_S:g} s')
         else:
             log.info('worker stopped')
-
-
-def _never_called(msg: PointCloud2) -> None:
-    raise AssertionError('input subscriptions are taken by the intake thread')
 
 
 def autostart(node: ClassifierNode) -> None:
