@@ -288,3 +288,32 @@ def test_overlapped_batches_answer_in_order_as_one_at_a_time(recognizer: Any) ->
         np.testing.assert_array_equal(answer.topk_ids, want.topk_ids)
     snap = h.stats.snapshot([0])
     assert snap.answered == len(msgs) and snap.in_flight == 0 and snap.unaccounted() == 0
+
+
+def test_a_failure_between_steps_settles_a_backlog_once(recognizer: Any) -> None:
+    """Clouds that cannot be turned z-up fail their own messages once each, overlapped too.
+
+    A broken frame lookup; the worker goes on answering afterwards.
+    """
+    rng = np.random.default_rng(7)
+    h = Harness(recognizer, max_batch=4)
+    broken = {'on': True}
+    h.pipeline.frame_rotation = lambda frame_id: np.eye(2) if broken['on'] else None
+    for i in range(12):
+        h.put(_msg(i, 40, rng))
+    worker = threading.Thread(target=h.pipeline.serve, args=(h.queue, h.publish))
+    worker.start()
+    deadline = time.monotonic() + 60
+    while h.stats.snapshot([0]).in_flight and time.monotonic() < deadline:
+        time.sleep(0.01)
+    broken['on'] = False
+    for i in range(12, 16):
+        h.put(_msg(i, 40, rng))
+    while len(h.answers) < 4 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    h.stop.set()
+    worker.join(5)
+    snap = h.stats.snapshot([0])
+    assert sorted(h.answers) == [12, 13, 14, 15]
+    assert snap.failed == {'classify': 12} and snap.answered == 4
+    assert snap.in_flight == 0 and snap.unaccounted() == 0

@@ -206,6 +206,7 @@ class Pipeline:
                 if id(item) in self._unsettled:
                     self.fail(item, 'internal', exc)
             self._forget(batch)
+            batch.jobs = []              # settled: nothing of it is answered any more
         return True
 
     def _forget(self, batch: Batch) -> None:
@@ -236,9 +237,9 @@ class Pipeline:
         overlap: the encoding runs on the encoder's threads after this returns (`finish`
         waits for it); else it is done here.
         """
-        self._apply_pending()
         items = batch.items
-        self._unsettled.update(id(item) for item in items)
+        self._unsettled.update(id(item) for item in items)   # first: a failure settles them
+        self._apply_pending()
         jobs = []
         for item in items:
             try:
@@ -256,9 +257,9 @@ class Pipeline:
         batch.jobs = jobs
         if not jobs:
             return
-        clouds = [c for job in jobs for c in job.model_clouds()]
-        batch.size = len(clouds)
         try:
+            clouds = [c for job in jobs for c in job.model_clouds()]
+            batch.size = len(clouds)
             batch.later = self._classify_later(clouds, overlap)
         except Exception as exc:  # noqa: BLE001 - retried message by message in finish
             batch.error = exc
