@@ -318,3 +318,13 @@ def test_batch_workers_are_named_for_the_os(real_clouds: np.ndarray) -> None:
     names = {(task / 'comm').read_text().strip() for task in Path('/proc/self/task').iterdir()}
     encoder.close()
     assert {'point_gn_enc_0', 'point_gn_enc_1'} <= names
+
+
+def test_encoding_started_ahead_gives_the_same_bits(encoder: PointGNEncoder,
+                                                    real_clouds: np.ndarray) -> None:
+    # the node starts a batch's encoding on the pool and collects it later (encode_later)
+    clouds = torch.from_numpy(real_clouds)
+    later = encoder.encode_later(clouds)
+    other = encoder.encode(clouds[:2])          # the pool serves another call meanwhile
+    assert torch.equal(later(), encoder.encode(clouds))
+    assert torch.equal(other, encoder.encode(clouds[:2]))

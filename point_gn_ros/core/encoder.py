@@ -141,7 +141,7 @@ class PointGNEncoder:
         """`encode(xyz)` started now on the worker threads; the returned call waits for it.
 
         overlap: a batch of two or more clouds runs on the worker pool while the caller goes
-        on (the node classifies the batch before meanwhile); otherwise, and for one cloud
+        on (the node classifies the batch ahead meanwhile); otherwise, and for one cloud
         (which the caller shares with a helper, `_run_lone`), it is encoded before returning.
         The features are the same bits either way. Invalid clouds raise here.
         """
