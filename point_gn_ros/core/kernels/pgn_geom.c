@@ -334,12 +334,18 @@ static void sort_small(uint64_t *keys, int64_t n) {
 static inline int64_t count_le(const float *d, int64_t n, float tau) {
     int64_t c = 0, i = 0;
 #if defined(__AVX512F__)
-    /* compare masks and popcounts: no widening of lanes to 64-bit counters */
+    /* per-lane int32 counters bumped under the compare mask (no mask moved to a general
+     * register per vector), two chains, summed once */
     const __m512 vt = _mm512_set1_ps(tau);
+    const __m512i one = _mm512_set1_epi32(1);
+    __m512i c0 = _mm512_setzero_si512(), c1 = c0;
     for (; i + 32 <= n; i += 32) {
-        c += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d + i), vt, _CMP_LE_OQ));
-        c += __builtin_popcount(_mm512_cmp_ps_mask(_mm512_loadu_ps(d + i + 16), vt, _CMP_LE_OQ));
+        c0 = _mm512_mask_add_epi32(c0, _mm512_cmp_ps_mask(_mm512_loadu_ps(d + i), vt,
+                                                          _CMP_LE_OQ), c0, one);
+        c1 = _mm512_mask_add_epi32(c1, _mm512_cmp_ps_mask(_mm512_loadu_ps(d + i + 16), vt,
+                                                          _CMP_LE_OQ), c1, one);
     }
+    c = _mm512_reduce_add_epi32(_mm512_add_epi32(c0, c1));
 #elif defined(__AVX2__)
     /* AVX2: per-lane int32 counters (a true compare is -1: subtract it), four chains,
      * summed once (movemask + popcount per vector was slower on Zen 3) */
