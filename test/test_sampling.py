@@ -1,5 +1,9 @@
 """Resampling and normalisation."""
 
+import ctypes
+from pathlib import Path
+
+from conftest import KERNEL_BUILDS, kernel_build
 import numpy as np
 import pytest
 import torch
@@ -56,6 +60,28 @@ def test_compiled_fps_ties_like_the_oracle(n: int, kind: str) -> None:
     m = min(n, 300)
     np.testing.assert_array_equal(fps_indices(cloud, m),
                                   oracle_fps(torch.from_numpy(cloud), m).numpy())
+
+
+@pytest.mark.parametrize('build', sorted(KERNEL_BUILDS))
+def test_every_simd_build_of_fps_ties_like_the_oracle(build: str, tmp_path: Path) -> None:
+    # pgn_geom.c has a portable, an AVX2 and an AVX-512 FPS loop: each build that this CPU
+    # runs, against the oracle, with exact ties and a tail beyond the vector blocks
+    lib = kernel_build('pgn_geom.c', build, tmp_path,
+                       ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
+    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+    lib.pgn_fps_from.argtypes = [ptr, ptr, ptr, i64, i64, i64, ptr, ptr]
+    for n, kind in ((1000, 'grid'), (517, 'duplicated'), (4099, 'normal')):
+        cloud = _cloud(n, 8)
+        if kind == 'grid':
+            cloud = np.round(cloud * 2) / 2
+        elif kind == 'duplicated':
+            cloud[n // 2:] = cloud[:n - n // 2]
+        want = oracle_fps(torch.from_numpy(cloud), 300).numpy()
+        soa = np.ascontiguousarray(cloud.T)
+        got, scratch = np.empty(300, np.int64), np.empty(n, np.float32)
+        lib.pgn_fps_from(soa[0].ctypes.data, soa[1].ctypes.data, soa[2].ctypes.data, n, 300,
+                         int(want[0]), got.ctypes.data, scratch.ctypes.data)
+        np.testing.assert_array_equal(got, want, err_msg=f'{build}, {n} points, {kind}')
 
 
 def test_fps_start_is_geometric_so_order_does_not_matter() -> None:

@@ -86,6 +86,26 @@ static inline float fps_update(const float *x, const float *y, const float *z, i
     return md;
 }
 
+#if defined(__AVX2__) || defined(__AVX512F__)
+/* The vector FPS loops' step end: the lanes' (max, first index) pairs -> the first maximum
+ * over points [0, done), then points [done, n) (indices above all others) updated from the
+ * current point cur and compared strictly. Returns the next point. */
+static int64_t fps_pick(const float *v, const int32_t *ix, int lanes, const float *x,
+                        const float *y, const float *z, int64_t done, int64_t n, int64_t it,
+                        float *min_d, int64_t cur) {
+    const float px = x[cur], py = y[cur], pz = z[cur];
+    float best = v[0];
+    int64_t bix = ix[0];
+    for (int l = 1; l < lanes; ++l)
+        if (v[l] > best || (v[l] == best && ix[l] < bix)) { best = v[l]; bix = ix[l]; }
+    for (int64_t i = done; i < n; ++i) {
+        const float md = fps_update(x, y, z, i, px, py, pz, it, min_d);
+        if (md > best) { best = md; bix = i; }
+    }
+    return bix;
+}
+#endif
+
 /* Farthest point sampling from a given start over SoA coordinates x, y, z (n each)
  * -> idx[0..m). min_d: scratch of n floats. Same rounding and ties (first maximum)
  * as the oracle's and numpy's loops. */
@@ -147,15 +167,7 @@ static void fps_from_avx2(const float *x, const float *y, const float *z, int64_
         int32_t i8[8];
         _mm256_storeu_ps(v8, bv[0]);
         _mm256_storeu_si256((__m256i *)i8, bi[0]);
-        float best = v8[0];
-        int64_t bix = i8[0];
-        for (int l = 1; l < 8; ++l)
-            if (v8[l] > best || (v8[l] == best && i8[l] < bix)) { best = v8[l]; bix = i8[l]; }
-        for (int64_t i = n32; i < n; ++i) {  /* the tail: indices above all others */
-            const float md = fps_update(x, y, z, i, px, py, pz, it, min_d);
-            if (md > best) { best = md; bix = i; }
-        }
-        cur = bix;
+        cur = fps_pick(v8, i8, 8, x, y, z, n32, n, it, min_d, cur);
     }
 }
 #endif
@@ -215,15 +227,7 @@ static void fps_from_avx512(const float *x, const float *y, const float *z, int6
         int32_t i16[16];
         _mm512_storeu_ps(v16, bv[0]);
         _mm512_storeu_si512((void *)i16, bi[0]);
-        float best = v16[0];
-        int64_t bix = i16[0];
-        for (int l = 1; l < 16; ++l)
-            if (v16[l] > best || (v16[l] == best && i16[l] < bix)) { best = v16[l]; bix = i16[l]; }
-        for (int64_t i = n64; i < n; ++i) {  /* the tail: indices above all others */
-            const float md = fps_update(x, y, z, i, px, py, pz, it, min_d);
-            if (md > best) { best = md; bix = i; }
-        }
-        cur = bix;
+        cur = fps_pick(v16, i16, 16, x, y, z, n64, n, it, min_d, cur);
     }
 }
 #endif
