@@ -54,6 +54,12 @@ def make_encoder(cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu',
     return enc  # type: ignore[return-value]
 
 
+def _prepared(cloud: np.ndarray, cfg: EncoderConfig, resample: ResampleMethod, seed: int
+              ) -> np.ndarray:
+    """One cloud as the encoder with `cfg` takes it: (N, 3) -> (num_points, 3) float32."""
+    return prepare(cloud, cfg.num_points, resample, seed, cfg.yaw_align, cfg.upsample)
+
+
 def encode_clouds(clouds: Iterable[np.ndarray] | np.ndarray, encoder: Encoder,
                   resample: ResampleMethod = 'fps', seed: int = 0, batch_size: int = 64,
                   progress: str | None = None, total: int | None = None,
@@ -80,8 +86,7 @@ def encode_clouds(clouds: Iterable[np.ndarray] | np.ndarray, encoder: Encoder,
         batch.clear()
 
     for cloud in clouds:
-        batch.append(prepare(cloud, cfg.num_points, resample, seed, cfg.yaw_align,
-                             cfg.upsample))
+        batch.append(_prepared(cloud, cfg, resample, seed))
         if len(batch) == batch_size:
             flush()
     if batch:
@@ -167,7 +172,6 @@ class Recognizer:
             result = self.classify_clouds(clouds)
             return lambda: result
         cfg = self.encoder.cfg
-        batch = np.stack([prepare(c, cfg.num_points, self.resample, 0, cfg.yaw_align,
-                                  cfg.upsample) for c in clouds])
+        batch = np.stack([_prepared(c, cfg, self.resample, 0) for c in clouds])
         features = start(torch.from_numpy(batch))
         return lambda: self.classifier.classify(features(), self.top_k)
