@@ -41,6 +41,7 @@ _SRC_DIR = Path(__file__).resolve().parent
 _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_stage.c': ['-ffast-math'],
             'pgn_avx512.c': ['-ffast-math'],
+            'pgn_avx512_lanes.c': ['-ffast-math'],  # stage 1 with neighbours in the lanes
             'pgn_avx2.c': ['-ffast-math'],  # AVX2 + FMA stage loops (CPUs without AVX-512)
             'pgn_avx2_d18.c': ['-ffast-math'],  # AVX2 stage 1 with derived Gaussians
             'pgn_encode.c': ['-ffast-math'],

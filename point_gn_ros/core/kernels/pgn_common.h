@@ -89,6 +89,23 @@ static inline __m256 exp2_neg_avx2(__m256 t) {
 }
 #endif
 
+/* Separable Gaussians with neighbours in the lanes (pgn_avx512_lanes.c): nc Gaussians per
+ * axis in nblk blocks of B (the last may be shorter) starting at b[m]; T: (nc,), the T_l
+ * of Gaussian j = m B + l. */
+#define PGN_LANES_MAXC 32
+typedef struct {
+    int64_t nc, B, nblk;
+    float ql, h2ql, W;  /* -q log2(e), -2 q h log2(e), the clamp of sep_t */
+    const float *b, *T;
+} lanes_t;
+int pgn_lanes_plan(int64_t nc, float q, lanes_t *lp, float *b, float *T);
+#if defined(__AVX512F__)
+int64_t pgn_lanes_scratch(int64_t K);
+void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
+                                const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                                float r, const lanes_t *lp, float *out, float *scr);
+#endif
+
 /* pgn_stage.c */
 void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K);
 void pgn_stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, const int32_t *nb,

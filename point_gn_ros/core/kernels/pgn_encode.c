@@ -97,6 +97,8 @@ typedef struct agg_job {
     const float *ccs;
     const __mmask16 *m1, *m2;
     float sc;
+    const lanes_t *lanes;  /* neighbours in the lanes (stage 1), else NULL */
+    float *lscr[2];        /* its scratch, per thread */
 #elif defined(PGN_AVX2)
     const float *ccs;
     const int32_t *lane_axis;
@@ -179,6 +181,13 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     const int32_t *nb = j->nb + c0 * j->K;
     const float *vx = j->vx + c0 * j->K * 3;
     float *out = j->out + c0 * j->D2p;
+#if defined(__AVX512F__) && !defined(PGN_NO_LANES)
+    if (j->lanes) {
+        pgn_aggregate_lanes_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes,
+                                   out, j->lscr[tid]);
+        return;
+    }
+#endif
 #if defined(__AVX512F__) && !defined(PGN_NO_D32)
     if (j->d32) {
         pgn_aggregate_d32_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs, j->m1,
@@ -265,10 +274,23 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     uint64_t *keys2 = par ? xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32)) : NULL;
     int32_t *tails = par ? xalloc(sizeof(int32_t) * (size_t)(2 * (K1 + 16))) : NULL;
     float *parts = par ? xalloc(sizeof(float) * (size_t)(2 * S1)) : NULL;
+#if defined(__AVX512F__)
+    /* stage 1 with neighbours in the lanes: its scratch per thread */
+    const int64_t LS = pgn_lanes_scratch(K1);
+    float *lscr = xalloc(sizeof(float) * (size_t)LS * (size_t)npar);
+#else
+    float *lscr = NULL;
+#endif
     int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
     uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
     int rc = 0;
     TOC(11, 11);
+#if defined(__AVX512F__)
+    if (!lscr) {
+        rc = -1;
+        goto done;
+    }
+#endif
     if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
         || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE
         || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2 || !tails
@@ -441,6 +463,8 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         const float sc = sqrtf(-q * 1.44269504088896341f);
         float ccs[64];
         __mmask16 m1[4] = {0}, m2[4] = {0};
+        lanes_t lanes;
+        float lanes_b[PGN_LANES_MAXC], lanes_T[2 * PGN_LANES_MAXC];
         if (!fx && D > 16 && D <= 32) {
             /* register-resident path; pe lanes: channels [0, 32) and [D, D + 32) */
             for (int i = 0; i < 64; ++i) {
@@ -452,6 +476,13 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             }
             job.d32 = 1;
             job.ccs = ccs; job.m1 = m1; job.m2 = m2; job.sc = sc;
+#if !defined(PGN_NO_LANES)
+            if (pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T)) {
+                job.lanes = &lanes;
+                job.lscr[0] = lscr;
+                job.lscr[1] = par ? lscr + LS : NULL;
+            }
+#endif
         }
 #elif defined(PGN_AVX2) && !defined(PGN_NO_D32)
         const float sc = sqrtf(-q * 1.44269504088896341f);
@@ -496,7 +527,7 @@ done:
     free(vec); free(pe); free(ax); free(cidx); free(nb); free(keys);
     free(sepb); free(sepT); free(sepA); free(sepE);
     free(pe2); free(vec2); free(sepA2); free(sepE2); free(scratch2); free(keys2); free(tails);
-    free(parts);
+    free(parts); free(lscr);
     return rc;
 }
 

@@ -1,0 +1,249 @@
+/* Stage aggregation with neighbours in the lanes (AVX-512), for 16 < D <= 32: stage 1 of
+ * the default encoder (D = 27: 54 pe channels, 18 Gaussians per axis).
+ *
+ * pgn_aggregate_d32_avx512 puts channels in the lanes and evaluates every Gaussian with its
+ * own exponential: 4 vectors of exp a neighbour. Here the 16 lanes are 16 neighbours of one
+ * centre and each axis's channels are walked along its grid of centres b_0 + j h. In a
+ * block starting at b_m, pe_l = T_l U_l with U_l = A_m P^l, A_m = exp(q (b_m - w)^2),
+ * P = exp(-2 q h w) (w: the neighbour's offset on that axis) and T_l = exp(2 q l h b_m +
+ * q l^2 h^2): the separable form of sep_t, the powers taken one step at a time. An axis
+ * then costs 2 exponentials per 16 neighbours (one block) instead of one per channel.
+ * pgn_lanes_plan picks the blocks (lanes_range_ok).
+ *
+ * The offset half needs the neighbours' feature rows by channel: transposed once per
+ * centre into a channel-major table. Each channel's max and sum are kept per lane and
+ * reduced over the lanes at the end of the centre. Features stay within a few 1e-6 of the
+ * oracle (BENCHMARKS.md); a result depends on its centre only, so batches, threads and a
+ * lone cloud's chunks stay bit-identical.
+ */
+#include "pgn_common.h"
+
+/* Whether blocks of B Gaussians (L = B - 1 steps of P from A_m) are safe in float for nc
+ * centres in (-1, 1) at this q. A step's running product A_m P^l is pe_l / T_l and
+ * |log T_l| <= 2 |q| L h + |q| L^2 h^2, kept under 40 so that T^2 (the rescaling) stays in
+ * range too; P = exp(-2 q h w) stays in range for |w| <= W. When A_m underflows (|b_m - w| >
+ * sqrt(87 / |q|)) the block's largest Gaussian is below exp(-(sqrt(87) - L h sqrt|q|)^2),
+ * under e^-30 for L h sqrt|q| < 3.8: only such values are lost. */
+static int lanes_range_ok(int64_t nc, double q, int64_t B) {
+    const double aq = fabs(q), h = 2.0 / (double)(nc + 1), W = 1.0 + sqrt(87.0 / aq);
+    const double L = (double)(B - 1);
+    return L * h * sqrt(aq) < 3.8 && 2.0 * aq * L * h + aq * L * L * h * h < 40.0
+           && 2.0 * aq * h * W < 80.0;
+}
+
+/* Blocks for nc Gaussians per axis at this q: the fewest that pass lanes_range_ok.
+ * Fills lp (b: (nblk,) block bases, T: (nc,) T of each centre index j = m B + l); returns
+ * 0 when even single Gaussians fail (the caller keeps the channels-in-lanes kernel). */
+int pgn_lanes_plan(int64_t nc, float q, lanes_t *lp, float *b, float *T) {
+    if (nc < 1 || nc > PGN_LANES_MAXC) return 0;
+    const double qd = (double)q, h = 2.0 / (double)(nc + 1), b0 = -1.0 + h;
+    for (int64_t nblk = 1; nblk <= nc; ++nblk) {
+        const int64_t B = (nc + nblk - 1) / nblk;
+        if (!lanes_range_ok(nc, qd, B)) continue;
+        lp->nc = nc;
+        lp->B = B;
+        lp->nblk = (nc + B - 1) / B;
+        lp->ql = (float)(-qd * 1.4426950408889634);
+        lp->h2ql = (float)(-2.0 * qd * h * 1.4426950408889634);
+        lp->W = (float)(1.0 + sqrt(87.0 / fabs(qd)));
+        for (int64_t j = 0; j < nc; ++j) {
+            const int64_t m = j / B, l = j % B;
+            const double bm = b0 + (double)(B * m) * h;
+            b[m] = (float)bm;
+            T[j] = (float)exp(2.0 * qd * (double)l * h * bm
+                              + qd * (double)(l * l) * h * h);
+        }
+        lp->b = b;
+        lp->T = T;
+        return 1;
+    }
+    return 0;
+}
+
+#if defined(__AVX512F__)
+/* 16 channels' lane partials V (16, 16) reduced over the lanes: lane c of the result is
+ * channel c's max (MAX) or sum. Halving tree: 256-bit halves, 128-bit quarters, pairs,
+ * neighbours; the last round leaves channel 4 j + k in lane 4 k + j, then one permute. */
+#define PGN_RED16(NAME, OP)                                                              \
+    static inline __m512 NAME(const float *V) {                                         \
+        __m512 s[8];                                                                     \
+        for (int i = 0; i < 8; ++i) {                                                    \
+            const __m512 a = _mm512_load_ps(V + 32 * i), b = _mm512_load_ps(V + 32 * i + 16); \
+            s[i] = OP(_mm512_shuffle_f32x4(a, b, 0x44), _mm512_shuffle_f32x4(a, b, 0xEE)); \
+        }                                                                                \
+        for (int i = 0; i < 4; ++i)                                                      \
+            s[i] = OP(_mm512_shuffle_f32x4(s[2 * i], s[2 * i + 1], 0x88),                \
+                      _mm512_shuffle_f32x4(s[2 * i], s[2 * i + 1], 0xDD));               \
+        for (int i = 0; i < 2; ++i)                                                      \
+            s[i] = OP(_mm512_shuffle_ps(s[2 * i], s[2 * i + 1], 0x44),                   \
+                      _mm512_shuffle_ps(s[2 * i], s[2 * i + 1], 0xEE));                  \
+        const __m512 t = OP(_mm512_shuffle_ps(s[0], s[1], 0x88),                         \
+                            _mm512_shuffle_ps(s[0], s[1], 0xDD));                        \
+        return _mm512_permutexvar_ps(_mm512_setr_epi32(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, \
+                                                       14, 3, 7, 11, 15), t);            \
+    }
+PGN_RED16(red16_max, _mm512_max_ps)
+PGN_RED16(red16_add, _mm512_add_ps)
+#undef PGN_RED16
+
+#define NG 8  /* groups of 16 neighbours held in registers: 128 neighbours a chunk */
+
+/* Floats of scratch pgn_aggregate_lanes_avx512 needs for K neighbours. */
+int64_t pgn_lanes_scratch(int64_t K) {
+    const int64_t Kc = (K + 16 * NG - 1) / (16 * NG) * (16 * NG);
+    return (32 + 3) * Kc + 2 * 64 * 16 + 4 * 64;
+}
+
+/* feat, cidx, nb, vx, r, out as pgn_stage_aggregate; lp: pgn_lanes_plan's blocks for the
+ * 2D / 3 Gaussians per axis; scr: pgn_lanes_scratch(K) floats, 64-byte aligned. */
+void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
+                                const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                                float r, const lanes_t *lp, float *out, float *scr) {
+    const int64_t Dp = padded(D), D2 = 2 * D, D2p = padded(D2), nc = lp->nc;
+    const int64_t G = (K + 15) / 16, Kc = (K + 16 * NG - 1) / (16 * NG) * (16 * NG);
+    const int64_t Gc = Kc / 16;
+    float *RT = scr;            /* (D, Kc): (row - cf) r by channel, 0 past K */
+    float *WV = RT + D * Kc;    /* (3, Kc): clamped offsets by axis */
+    float *MX = WV + 3 * Kc;    /* (2D, 16): per-lane max of each channel */
+    float *SM = MX + 64 * 16;   /* (2D, 16): per-lane sum, then 64 floats of results */
+    const float invk = 1.0f / (float)K;
+    /* pe_l = T_l U_l with U_l = A_m P^l: w = (f + T U) T U = T^2 (f / T + U) U, so the
+     * lanes aggregate (f / T + U) U and each channel's max and sum are scaled by T^2 at the
+     * end (T > 0): one multiply a step less. rs: r / T of the offset channels, ct: 1 / T of
+     * the centre channels, t2: T^2. */
+    float *rs = SM + 64 * 16 + 64, *ct = rs + 64, *t2 = ct + 64;
+    for (int64_t ch = 0; ch < 64; ++ch) {
+        const float T = ch < D2 ? lp->T[ch % nc] : 1.0f;
+        rs[ch] = r / T;
+        ct[ch] = 1.0f / T;
+        t2[ch] = T * T;
+    }
+    const __m512 vW = _mm512_set1_ps(lp->W);
+    const __m512 vnW = _mm512_set1_ps(-lp->W), zero = _mm512_setzero_ps();
+    const __m512 ql = _mm512_set1_ps(lp->ql), nh2ql = _mm512_set1_ps(-lp->h2ql);
+    /* axis a of neighbour i is float 3 i + a of the group's 48: two permutes */
+    __m512i ia[3];
+    __mmask16 hi[3];
+    for (int a = 0; a < 3; ++a) {
+        int32_t t[16];
+        hi[a] = 0;
+        for (int i = 0; i < 16; ++i) {
+            t[i] = (3 * i + a) & 31;
+            if (3 * i + a >= 32) hi[a] |= (__mmask16)(1u << i);
+        }
+        ia[a] = _mm512_loadu_si512((const void *)t);
+    }
+    /* neighbours past K stay 0 in both tables (WV follows RT) */
+    memset(RT, 0, sizeof(float) * (size_t)((D + 3) * Kc));
+    for (int64_t c = 0; c < S; ++c) {
+        const float *cf = feat + cidx[c] * Dp;
+        const int32_t *nr = nb + c * K;
+        const float *vc = vx + c * K * 3;
+        /* the offsets by axis and the neighbours' rows by channel, 16 neighbours a step */
+        for (int64_t g = 0; g < G; ++g) {
+            const int64_t nv = K - 16 * g < 16 ? K - 16 * g : 16, nf = 3 * nv;
+            const __mmask16 vm = (__mmask16)((1u << nv) - 1u);
+            const __mmask16 m0 = nf >= 16 ? 0xffff : (__mmask16)((1u << nf) - 1u);
+            const __mmask16 m1 = nf >= 32 ? 0xffff
+                                 : (nf <= 16 ? 0 : (__mmask16)((1u << (nf - 16)) - 1u));
+            const __mmask16 m2 = nf >= 48 ? 0xffff
+                                 : (nf <= 32 ? 0 : (__mmask16)((1u << (nf - 32)) - 1u));
+            const __m512 x0 = _mm512_maskz_loadu_ps(m0, vc + 48 * g);
+            const __m512 x1 = _mm512_maskz_loadu_ps(m1, vc + 48 * g + 16);
+            const __m512 x2 = _mm512_maskz_loadu_ps(m2, vc + 48 * g + 32);
+            for (int a = 0; a < 3; ++a) {
+                __m512 v = _mm512_permutex2var_ps(x0, ia[a], x1);
+                v = _mm512_mask_permutexvar_ps(v, hi[a], ia[a], x2);
+                v = _mm512_maskz_mov_ps(vm, _mm512_min_ps(_mm512_max_ps(v, vnW), vW));
+                _mm512_store_ps(WV + a * Kc + 16 * g, v);
+            }
+            /* rows by channel, 4 channels at a time: 128-bit lane j of Y[m] holds row 4 j + m
+             * (broadcast loads merged under masks), then a 4 x 4 transpose in each lane */
+            const float *rows[16];
+            for (int i = 0; i < 16; ++i)
+                rows[i] = feat + (int64_t)nr[16 * g + (i < nv ? i : 0)] * Dp;
+            for (int64_t k = 0; 4 * k < D; ++k) {
+                __m512 Y[4];
+                for (int m = 0; m < 4; ++m) {
+                    Y[m] = _mm512_broadcast_f32x4(_mm_load_ps(rows[m] + 4 * k));
+                    for (int j = 1; j < 4; ++j)
+                        Y[m] = _mm512_mask_broadcast_f32x4(Y[m], (__mmask16)(0xFu << (4 * j)),
+                                                           _mm_load_ps(rows[4 * j + m] + 4 * k));
+                }
+                const __m512d t0 = _mm512_castps_pd(_mm512_unpacklo_ps(Y[0], Y[1]));
+                const __m512d t1 = _mm512_castps_pd(_mm512_unpackhi_ps(Y[0], Y[1]));
+                const __m512d t2 = _mm512_castps_pd(_mm512_unpacklo_ps(Y[2], Y[3]));
+                const __m512d t3 = _mm512_castps_pd(_mm512_unpackhi_ps(Y[2], Y[3]));
+                const __m512 col[4] = {_mm512_castpd_ps(_mm512_unpacklo_pd(t0, t2)),
+                                       _mm512_castpd_ps(_mm512_unpackhi_pd(t0, t2)),
+                                       _mm512_castpd_ps(_mm512_unpacklo_pd(t1, t3)),
+                                       _mm512_castpd_ps(_mm512_unpackhi_pd(t1, t3))};
+                for (int64_t ch = 4 * k; ch < D && ch < 4 * k + 4; ++ch)
+                    _mm512_store_ps(RT + ch * Kc + 16 * g, _mm512_maskz_mul_ps(
+                        vm, _mm512_sub_ps(col[ch - 4 * k], _mm512_set1_ps(cf[ch])),
+                        _mm512_set1_ps(rs[ch])));
+            }
+        }
+        for (int64_t g0 = 0; g0 < Gc; g0 += NG) {
+            __mmask16 vm[NG];
+            for (int i = 0; i < NG; ++i) {
+                const int64_t t0 = 16 * (g0 + i);
+                const int64_t nv = K - t0 <= 0 ? 0 : (K - t0 < 16 ? K - t0 : 16);
+                vm[i] = (__mmask16)((1u << nv) - 1u);
+            }
+            for (int a = 0; a < 3; ++a) {
+                const float *wa = WV + a * Kc + 16 * g0;
+                __m512 P[NG], U[NG];
+                for (int i = 0; i < NG; ++i)
+                    P[i] = exp2_neg_avx512(_mm512_mul_ps(nh2ql, _mm512_load_ps(wa + 16 * i)));
+                for (int64_t m = 0; m < lp->nblk; ++m) {
+                    const __m512 bm = _mm512_set1_ps(lp->b[m]);
+                    const int64_t L = nc - m * lp->B < lp->B ? nc - m * lp->B : lp->B;
+                    for (int i = 0; i < NG; ++i) {
+                        const __m512 u = _mm512_sub_ps(bm, _mm512_load_ps(wa + 16 * i));
+                        U[i] = _mm512_maskz_mov_ps(
+                            vm[i], exp2_neg_avx512(_mm512_mul_ps(_mm512_mul_ps(u, u), ql)));
+                    }
+                    for (int64_t l = 0; l < L; ++l) {
+                        const int64_t ch = a * nc + m * lp->B + l;
+                        __m512 mx = _mm512_set1_ps(-INFINITY), sm = zero;
+                        if (ch < D) {
+                            const float *rt = RT + ch * Kc + 16 * g0;
+                            for (int i = 0; i < NG; ++i) {
+                                const __m512 f = _mm512_load_ps(rt + 16 * i);
+                                const __m512 w = _mm512_mul_ps(_mm512_add_ps(f, U[i]), U[i]);
+                                U[i] = _mm512_mul_ps(U[i], P[i]);
+                                mx = _mm512_mask_max_ps(mx, vm[i], mx, w);
+                                sm = _mm512_add_ps(sm, w);
+                            }
+                        } else {
+                            const __m512 g = _mm512_set1_ps(cf[ch - D] * ct[ch]);
+                            for (int i = 0; i < NG; ++i) {
+                                const __m512 w = _mm512_mul_ps(_mm512_add_ps(g, U[i]), U[i]);
+                                U[i] = _mm512_mul_ps(U[i], P[i]);
+                                mx = _mm512_mask_max_ps(mx, vm[i], mx, w);
+                                sm = _mm512_add_ps(sm, w);
+                            }
+                        }
+                        if (g0) {  /* past 128 neighbours: the chunks ahead's partials */
+                            mx = _mm512_max_ps(mx, _mm512_load_ps(MX + ch * 16));
+                            sm = _mm512_add_ps(sm, _mm512_load_ps(SM + ch * 16));
+                        }
+                        _mm512_store_ps(MX + ch * 16, mx);
+                        _mm512_store_ps(SM + ch * 16, sm);
+                    }
+                }
+            }
+        }
+        /* lanes reduced into the 64 floats past SM, then gelu as one vector loop (libmvec) */
+        float *o = out + c * D2p, *acc = SM + 64 * 16;
+        const __m512 ik = _mm512_set1_ps(invk);
+        for (int64_t h = 0; h < D2; h += 16)
+            _mm512_store_ps(acc + h, _mm512_mul_ps(_mm512_load_ps(t2 + h), _mm512_fmadd_ps(
+                red16_add(SM + h * 16), ik, red16_max(MX + h * 16))));
+        for (int64_t ch = 0; ch < D2; ++ch) o[ch] = gelu(acc[ch]);
+        for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
+    }
+}
+#undef NG
+#endif
