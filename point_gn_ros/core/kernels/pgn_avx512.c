@@ -143,9 +143,9 @@ static inline __attribute__((always_inline)) void sep_pass(
  * of P, P^2, P^4, P^8. */
 static inline __attribute__((always_inline)) void sep_pass16(
         const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
-        int64_t D, const float *G, float r, float *mx, float *sm) {
+        int64_t D, const float *G, const float *Gs, const float *rT, float *mx, float *sm) {
     const int64_t n = fx->n, M = fx->M;
-    const __m512 one = _mm512_set1_ps(1.0f), vr = _mm512_set1_ps(r);
+    const __m512 one = _mm512_set1_ps(1.0f);
     for (int a = 0; a < 3; ++a) {
         __m512 e[8];
         for (int i = 0; i < nt; ++i) {
@@ -162,19 +162,20 @@ static inline __attribute__((always_inline)) void sep_pass16(
             const __mmask16 valid = (__mmask16)((1u << nv) - 1u);
             const int64_t no = D - ch < 0 ? 0 : (D - ch > 16 ? 16 : D - ch);
             const __mmask16 off = (__mmask16)(((1u << no) - 1u) & valid);  /* ch + l < D */
-            const __m512 T = _mm512_loadu_ps(fx->T + 16 * m);
-            const __m512 g = _mm512_loadu_ps(G + ch);
+            const __m512 g = _mm512_loadu_ps(G + ch), gs = _mm512_loadu_ps(Gs + ch);
+            const __m512 rt = _mm512_loadu_ps(rT + ch);
             __m512 w[8];
             for (int i = 0; i < nt; ++i) {
-                const __m512 am = _mm512_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]);
-                const __m512 pe = _mm512_mul_ps(am, _mm512_mul_ps(T, e[i]));
+                /* pe / T: T is folded into Gs, rT and the caller's final scaling */
+                const __m512 pe = _mm512_mul_ps(_mm512_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]),
+                                                e[i]);
                 if (off) {
                     const __m512 row = _mm512_maskz_loadu_ps(off, rows[i] + ch);
                     const __m512 f = _mm512_mask_blend_ps(
-                        off, g, _mm512_fmadd_ps(_mm512_sub_ps(row, g), vr, pe));
-                    w[i] = _mm512_mul_ps(_mm512_mask_blend_ps(off, _mm512_add_ps(f, pe), f), pe);
+                        off, _mm512_add_ps(gs, pe), _mm512_fmadd_ps(_mm512_sub_ps(row, g), rt, pe));
+                    w[i] = _mm512_mul_ps(f, pe);
                 } else {
-                    w[i] = _mm512_mul_ps(_mm512_add_ps(g, pe), pe);
+                    w[i] = _mm512_mul_ps(_mm512_add_ps(gs, pe), pe);
                 }
             }
             __m512 wm = w[0], ws = w[0];
@@ -198,14 +199,28 @@ static inline __attribute__((always_inline)) void sep_pass16(
 void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                  const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                  float r, float *out, float *mx, float *sm, float *G,
-                                 sep_t *fx) {
+                                 float *Gs, float *rT, float *T2, sep_t *fx) {
     const int64_t Dp = padded(D), D2 = 2 * D, D2p = padded(D2), nta = 3 * K;
     const float invk = 1.0f / (float)K;
+    if (fx->B == 16) {
+        /* pe = T A e: w = (f + pe) pe = T^2 (f / T + A e) A e, so sep_pass16 aggregates with
+         * Gs = G / T and rT = r / T, one multiply a neighbour and block less, and T^2 scales
+         * the results (T > 0). T of channel a n + 16 m + l is T[m][l]; lanes past an
+         * axis's n centres are masked off, so their T is 1. */
+        for (int64_t d = 0; d < D2 + 32; ++d) {
+            const int64_t j = d % fx->n;
+            const float T = d < D2 ? fx->T[j / 16 * 16 + j % 16] : 1.0f;
+            rT[d] = r / T;
+            T2[d] = T * T;
+        }
+    }
     for (int64_t c = 0; c < S; ++c) {
         const float *cf = feat + cidx[c] * Dp;
         const int32_t *nr = nb + c * K;
         for (int64_t d = 0; d < D; ++d) { G[d] = cf[d]; G[D + d] = cf[d]; }
         for (int64_t d = D2; d < D2 + 32; ++d) G[d] = 0.0f;
+        if (fx->B == 16)
+            for (int64_t d = 0; d < D2 + 32; ++d) Gs[d] = G[d] * rT[d] / r;
         for (int64_t d = 0; d < D2 + 32; ++d) { mx[d] = -INFINITY; sm[d] = 0.0f; }
         pgn_sep_prepare(fx, vx + c * K * 3, K);
         int64_t t = 0;
@@ -213,22 +228,25 @@ void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
             for (; t + 8 <= K; t += 8) {
                 const float *rows[8];
                 for (int i = 0; i < 8; ++i) rows[i] = feat + (int64_t)nr[t + i] * Dp;
-                sep_pass16(rows, 8, t, nta, fx, D, G, r, mx, sm);
+                sep_pass16(rows, 8, t, nta, fx, D, G, Gs, rT, mx, sm);
             }
         }
         for (; t + 4 <= K; t += 4) {
             const float *rows[4] = {feat + (int64_t)nr[t] * Dp, feat + (int64_t)nr[t + 1] * Dp,
                                     feat + (int64_t)nr[t + 2] * Dp, feat + (int64_t)nr[t + 3] * Dp};
-            if (fx->B == 16) sep_pass16(rows, 4, t, nta, fx, D, G, r, mx, sm);
+            if (fx->B == 16) sep_pass16(rows, 4, t, nta, fx, D, G, Gs, rT, mx, sm);
             else sep_pass(rows, 4, t, nta, fx, D, G, r, mx, sm);
         }
         for (; t < K; ++t) {
             const float *rows[1] = {feat + (int64_t)nr[t] * Dp};
-            if (fx->B == 16) sep_pass16(rows, 1, t, nta, fx, D, G, r, mx, sm);
+            if (fx->B == 16) sep_pass16(rows, 1, t, nta, fx, D, G, Gs, rT, mx, sm);
             else sep_pass(rows, 1, t, nta, fx, D, G, r, mx, sm);
         }
         float *o = out + c * D2p;
-        for (int64_t d = 0; d < D2; ++d) o[d] = gelu(mx[d] + sm[d] * invk);
+        if (fx->B == 16)
+            for (int64_t d = 0; d < D2; ++d) o[d] = gelu(T2[d] * (mx[d] + sm[d] * invk));
+        else
+            for (int64_t d = 0; d < D2; ++d) o[d] = gelu(mx[d] + sm[d] * invk);
         for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
     }
 }

@@ -126,7 +126,8 @@ void pgn_std_centre_avx512(const float *feat, int64_t Dp, const int32_t *nr, int
 #if defined(__AVX512F__) && defined(__AVX512VL__)
 void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
-                              float r, float *out, float *mx, float *sm, float *G, sep_t *fx);
+                              float r, float *out, float *mx, float *sm, float *G, float *Gs,
+                              float *rT, float *T2, sep_t *fx);
 #endif
 
 #if defined(PGN_AVX2)

@@ -218,7 +218,8 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
 #if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
     if (j->use_fx) {
         pgn_aggregate_sep_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
-                             j->sm[tid], j->pe[tid], &j->fx[tid]);
+                                 j->sm[tid], j->pe[tid], j->pe[tid] + j->PS,
+                                 j->pe[tid] + 2 * j->PS, j->pe[tid] + 3 * j->PS, &j->fx[tid]);
         return;
     }
 #endif
@@ -418,7 +419,11 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         /* blocks of 16 where the AVX-512 path runs and float range allows, else of 8 */
         int B = 0;
 #if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
-        if (pgn_sep_ok(nc, (double)q, 16)) B = 16;
+        /* and where T^2 (pgn_aggregate_sep_avx512 folds T out) stays in range: |log T| <=
+         * 2 |q| 15 h + |q| 15^2 h^2 < 40 */
+        const double h16 = 2.0 / (double)(nc + 1);
+        if (pgn_sep_ok(nc, (double)q, 16) && -2.0 * q * 15.0 * h16 - q * 225.0 * h16 * h16 < 40.0)
+            B = 16;
 #endif
         if (!B && pgn_sep_ok(nc, (double)q, 8)) B = 8;
         if (B) {
