@@ -72,8 +72,15 @@ typedef struct agg_job {
     /* kNN job (knn = 1): the stage's points (px, py, pz: n each) and centres (qx, qy, qz),
      * each thread with its own distance / key scratch and a private last row (below) */
     int knn;
-    /* std job (stdp = 1): per-centre partials of the feature-offset std into part (2 S) */
+    /* offsets job (offs = 1): the centres' normalised-offset rows into vx_out and their
+     * per-centre sums of v and v^2 into part (2 S); xyz: the stage's points (AoS) */
+    int offs;
+    const float *xyz;
+    float *vx_out;
+    /* std job (stdp = 1): per-centre partials of the feature-offset std into part (2 S),
+     * after scaling the centres' offset rows (vx_out, if set) by rx */
     int stdp;
+    float rx;
     int64_t Dp;
     float *part;
     const float *px, *py, *pz, *qx, *qy, *qz;
@@ -164,6 +171,51 @@ static void knn_chunk(agg_job *j, int tid, int64_t c0, int64_t c1) {
     memcpy(j->nb_out + (c1 - 1) * K, j->tail[tid], sizeof(int32_t) * (size_t)K);
 }
 
+/* Offsets of centres [c0, c1): v = xyz[nb] - centre (K, 3) per centre, and each centre's
+ * float sums of v and v^2 into part[2 c], part[2 c + 1] (the caller adds them in double:
+ * whichever thread ran a centre, the sums are the same bits). */
+static void offsets_centres(const float *xyz, const float *cx, const float *cy,
+                            const float *cz, const int32_t *nb, int64_t K, int64_t c0,
+                            int64_t c1, float *vx, float *part) {
+    for (int64_t c = c0; c < c1; ++c) {
+        const float qx = cx[c], qy = cy[c], qz = cz[c];
+        const int32_t *nr = nb + c * K;
+        float *v = vx + c * K * 3;
+        int64_t t = 0;
+#if defined(PGN_AVX2) || defined(__AVX512F__)
+        /* 4 floats in, 4 out per neighbour: the 4th is the next point's x (xyz has 4
+         * floats of slack), overwritten by the next store; not for the last neighbour,
+         * whose 4th float would land in the next centre's row, which the other thread
+         * of a lone cloud may have written already */
+        const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
+        for (; t + 1 < K; ++t)
+            _mm_storeu_ps(v + t * 3, _mm_sub_ps(_mm_loadu_ps(xyz + (int64_t)nr[t] * 3), q4));
+#endif
+        for (; t < K; ++t) {
+            const float *pj = xyz + (int64_t)nr[t] * 3;
+            v[t * 3] = pj[0] - qx; v[t * 3 + 1] = pj[1] - qy; v[t * 3 + 2] = pj[2] - qz;
+        }
+        float a1 = 0.0f, a2 = 0.0f;
+#pragma omp simd reduction(+:a1, a2)
+        for (int64_t u = 0; u < K * 3; ++u) { a1 += v[u]; a2 += v[u] * v[u]; }
+        part[2 * c] = a1;
+        part[2 * c + 1] = a2;
+    }
+}
+
+/* The std pass's centres [c0, c1): their offset rows scaled by rx first (when set). */
+static void std_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
+    if (j->vx_out) {
+        float *v = j->vx_out + c0 * j->K * 3;
+        const float rx = j->rx;
+#pragma omp simd
+        for (int64_t u = 0; u < (c1 - c0) * j->K * 3; ++u) v[u] *= rx;
+    }
+    for (int64_t c = c0; c < c1; ++c)
+        std_centre(j->feat, j->Dp, j->nb + c * j->K, j->K, j->feat + j->cidx[c] * j->Dp,
+                   j->mx[tid], j->sm[tid], j->part + 2 * c, j->part + 2 * c + 1);
+}
+
 static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     const int64_t c0 = j->S * chunk / j->nchunks, c1 = j->S * (chunk + 1) / j->nchunks;
     if (c1 <= c0) return;
@@ -171,10 +223,12 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
         knn_chunk(j, tid, c0, c1);
         return;
     }
+    if (j->offs) {
+        offsets_centres(j->xyz, j->qx, j->qy, j->qz, j->nb, j->K, c0, c1, j->vx_out, j->part);
+        return;
+    }
     if (j->stdp) {
-        for (int64_t c = c0; c < c1; ++c)
-            std_centre(j->feat, j->Dp, j->nb + c * j->K, j->K, j->feat + j->cidx[c] * j->Dp,
-                       j->mx[tid], j->sm[tid], j->part + 2 * c, j->part + 2 * c + 1);
+        std_centres(j, tid, c0, c1);
         return;
     }
     const int64_t *cidx = j->cidx + c0;
@@ -274,7 +328,9 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     float *scratch2 = par ? xalloc(sizeof(float) * (size_t)N) : NULL;
     uint64_t *keys2 = par ? xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32)) : NULL;
     int32_t *tails = par ? xalloc(sizeof(int32_t) * (size_t)(2 * (K1 + 16))) : NULL;
-    float *parts = par ? xalloc(sizeof(float) * (size_t)(2 * S1)) : NULL;
+    /* per-centre partial sums: feature offsets (parts), coordinate offsets (oparts) */
+    float *parts = xalloc(sizeof(float) * (size_t)(2 * S1));
+    float *oparts = xalloc(sizeof(float) * (size_t)(2 * S1));
 #if defined(__AVX512F__)
     /* stage 1 with neighbours in the lanes: its scratch per thread */
     const int64_t LS = pgn_lanes_scratch(K1);
@@ -294,8 +350,8 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 #endif
     if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
         || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE
-        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2 || !tails
-                          || !parts))) {
+        || !parts || !oparts
+        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2 || !tails))) {
         rc = -1;
         goto done;
     }
@@ -343,69 +399,38 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         }
         TOC(2, 1);
         TIC(3);
-        /* offsets (gathered rows of the AoS copy: no running sums, so no dependency
-         * chain per neighbour), then their unbiased std by two vectorised passes: float
-         * blocks, double totals */
+        /* offsets and their unbiased std: each centre's rows and float sums of v and v^2
+         * (a lone cloud shares the centres with the helper), added here in double in
+         * centre order; the std pass below scales the rows by 1 / std */
+        const int64_t nch = par ? (S < 16 ? S : 16) : 1;
+        agg_job oj;
+        memset(&oj, 0, sizeof(oj));
+        oj.offs = 1;
+        oj.xyz = xyz; oj.qx = cx; oj.qy = cy; oj.qz = cz; oj.nb = nb; oj.S = S; oj.K = K;
+        oj.vx_out = vx; oj.part = oparts; oj.nchunks = nch;
+        pgn_par_run(par, agg_chunk_fn, &oj, nch);
         double s1 = 0.0, s2 = 0.0;
-        for (int64_t c = 0; c < S; ++c) {
-            const float qx = cx[c], qy = cy[c], qz = cz[c];
-            const int32_t *nr = nb + c * K;
-            float *v = vx + c * K * 3;
-#if defined(PGN_AVX2)
-            /* 4 floats in, 4 out per neighbour: the 4th is the next point's x (xyz has 4
-             * floats of slack), overwritten by the next store (vx has slack too) */
-            const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
-            for (int64_t t = 0; t < K; ++t)
-                _mm_storeu_ps(v + t * 3, _mm_sub_ps(_mm_loadu_ps(xyz + (int64_t)nr[t] * 3), q4));
-#else
-            for (int64_t t = 0; t < K; ++t) {
-                const float *pj = xyz + (int64_t)nr[t] * 3;
-                v[t * 3] = pj[0] - qx; v[t * 3 + 1] = pj[1] - qy; v[t * 3 + 2] = pj[2] - qz;
-            }
-#endif
-        }
-        const int64_t nv = S * K * 3;
-        for (int64_t i = 0; i < nv; i += 4096) {
-            const int64_t e = i + 4096 < nv ? i + 4096 : nv;
-            float acc = 0.0f;
-#pragma omp simd reduction(+:acc)
-            for (int64_t u = i; u < e; ++u) acc += vx[u];
-            s1 += acc;
-        }
-        const float mvf = (float)(s1 / (double)nv);
-        for (int64_t i = 0; i < nv; i += 4096) {
-            const int64_t e = i + 4096 < nv ? i + 4096 : nv;
-            float acc = 0.0f;
-#pragma omp simd reduction(+:acc)
-            for (int64_t u = i; u < e; ++u) { const float d = vx[u] - mvf; acc += d * d; }
-            s2 += acc;
-        }
-        const float rx = (float)(1.0 / (sqrt(s2 / (double)(nv - 1)) + 1e-5));
-#pragma omp simd
-        for (int64_t i = 0; i < nv; ++i) vx[i] *= rx;
+        for (int64_t c = 0; c < S; ++c) { s1 += oparts[2 * c]; s2 += oparts[2 * c + 1]; }
+        const double nvd = (double)(S * K * 3);
+        double vvar = (s2 - s1 * s1 / nvd) / (nvd - 1.0);
+        if (vvar < 0.0) vvar = 0.0;
+        const float rx = (float)(1.0 / (sqrt(vvar) + 1e-5));
         TOC(3, 10);
         TIC(7);
         /* std of feature offsets: per-channel float partials over a centre's neighbours
-         * (4 rows a pass, no horizontal sum per row), reduced once per centre into
-         * double totals */
+         * (4 rows a pass, no horizontal sum per row), reduced once per centre and added
+         * here in double in centre order */
+        agg_job sj;
+        memset(&sj, 0, sizeof(sj));
+        sj.stdp = 1;
+        sj.feat = feat; sj.Dp = Dp; sj.cidx = cidx; sj.nb = nb; sj.S = S; sj.K = K;
+        sj.vx_out = vx; sj.rx = rx;
+        sj.nchunks = nch;
+        sj.mx[0] = mx; sj.sm[0] = sm; sj.mx[1] = vec2; sj.sm[1] = vec2 ? vec2 + VS : NULL;
+        sj.part = parts;
+        pgn_par_run(par, agg_chunk_fn, &sj, nch);
         double f1 = 0.0, f2 = 0.0;
-        if (par) {   /* a lone cloud: the centres' partials shared, summed here in order */
-            agg_job sj;
-            memset(&sj, 0, sizeof(sj));
-            sj.stdp = 1;
-            sj.feat = feat; sj.Dp = Dp; sj.cidx = cidx; sj.nb = nb; sj.S = S; sj.K = K;
-            sj.nchunks = S < 16 ? S : 16;
-            sj.mx[0] = mx; sj.sm[0] = sm; sj.mx[1] = vec2; sj.sm[1] = vec2 + VS;
-            sj.part = parts;
-            pgn_par_run(par, agg_chunk_fn, &sj, sj.nchunks);
-            for (int64_t c = 0; c < S; ++c) { f1 += parts[2 * c]; f2 += parts[2 * c + 1]; }
-        } else {
-            for (int64_t c = 0; c < S; ++c) {
-                float a1, a2;
-                std_centre(feat, Dp, nb + c * K, K, feat + cidx[c] * Dp, mx, sm, &a1, &a2);
-                f1 += a1; f2 += a2;
-            }
-        }
+        for (int64_t c = 0; c < S; ++c) { f1 += parts[2 * c]; f2 += parts[2 * c + 1]; }
         const double nf = (double)(S * K * D);
         double var = (f2 - f1 * f1 / nf) / (nf - 1.0);
         if (var < 0.0) var = 0.0;
@@ -532,7 +557,7 @@ done:
     free(vec); free(pe); free(ax); free(cidx); free(nb); free(keys);
     free(sepb); free(sepT); free(sepA); free(sepE);
     free(pe2); free(vec2); free(sepA2); free(sepE2); free(scratch2); free(keys2); free(tails);
-    free(parts); free(lscr);
+    free(parts); free(oparts); free(lscr);
     return rc;
 }
 
