@@ -8,8 +8,10 @@ exps / peak_exp, bytes / bandwidth); the phase's measured CPU time over its floo
 how far the code is from this core's limit.
 
 The counts are of the computation, not of our implementation (e.g. a distance is 8
-operations, an aggregated element 5), with exps counted for separable Gaussians (one
-exp per 8 centres per axis and neighbour, plus one), the cheapest scheme in the code.
+operations, an aggregated element 5), with exps counted for an axis's Gaussians as one
+running product (2 exps per axis and neighbour: stage 1's neighbour lanes,
+pgn_avx512_lanes.c), the cheapest scheme in the code; the separable stages take one exp
+per block of 16 centres plus one.
 """
 
 from __future__ import annotations
@@ -120,11 +122,11 @@ def measure_parallel_ops(lib: ctypes.CDLL, threads: int, one_core_ops: float,
 
 
 def _stages(cfg: EncoderConfig):
-    """(n points, S centres, K neighbours, D input width, centres per pe axis) per stage."""
+    """(n points, S centres, K neighbours, D input width) per stage."""
     n, d = cfg.num_points, cfg.init_dim
     for _ in range(cfg.stages):
         s, k = n // 2, min(cfg.k, n)
-        yield n, s, k, d, 2 * d // 3
+        yield n, s, k, d
         n, d = s, 2 * d
 
 
@@ -133,7 +135,7 @@ def phase_work(cfg: EncoderConfig) -> dict[str, Work]:
     fps = knn = std = pool = 0.0
     std_bytes = 0.0
     agg: dict[str, Work] = {}
-    for st, (n, s, k, d, nc) in enumerate(_stages(cfg), start=1):
+    for st, (n, s, k, d) in enumerate(_stages(cfg), start=1):
         # FPS and kNN: a distance (3 sub, 3 mul, 2 add) per (centre, point), plus the
         # running min and arg-max (FPS) or one selection compare (kNN).
         pool += s * 2 * d * 2.0  # max and sum over centres of the (S, 2D) output
@@ -144,10 +146,9 @@ def phase_work(cfg: EncoderConfig) -> dict[str, Work]:
         std_bytes += s * k * d * 4.0
         # aggregation per element of the (S, K, 2D) tensor: sub, fma, mul, max, add for the
         # offset half (add, mul, max, add for the centre half) and one multiply of the
-        # separable Gaussian; exps: (ceil(nc / 8) + 1) per neighbour and axis
+        # separable Gaussian; exps: 2 per neighbour and axis (one running product)
         agg[f'aggregation stage {st}'] = Work(
-            ops=s * k * d * (6.0 + 5.0), exps=s * k * 3.0 * (math.ceil(nc / 8) + 1),
-            bytes=s * k * d * 4.0)
+            ops=s * k * d * (6.0 + 5.0), exps=s * k * 3.0 * 2.0, bytes=s * k * d * 4.0)
     # initial embedding: one Gaussian (sub, mul, exp) per point and channel
     init = Work(ops=cfg.num_points * cfg.init_dim * 2.0, exps=cfg.num_points * cfg.init_dim)
     return {'initial embedding': init, 'FPS': Work(ops=fps), 'kNN': Work(ops=knn),
