@@ -277,6 +277,7 @@ def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.n
 @pytest.mark.parametrize('init_dim,k,sigma', [
     (27, 120, 0.4),   # the default stage 1: one block per axis, 8 groups of 16
     (18, 40, 0.4),    # 12 Gaussians per axis, a partial last group
+    (21, 10, 0.4),    # fewer neighbours than lanes: one partial group
     (21, 150, 0.4),   # past 128 neighbours: two chunks of groups
     (30, 37, 0.25),
     (27, 60, 0.1),    # sharp Gaussians: 5 blocks per axis
