@@ -7,19 +7,19 @@ with ctypes. ctypes releases the GIL during calls, so Python threads run
 clouds in parallel. No network, no Python headers, no torch headers.
 
 The stage loops have three builds, chosen at compile time by what -march=native enables:
-AVX-512 (pgn_avx512.c, pgn_avx512_lanes.c), AVX2 + FMA (pgn_avx2.c, pgn_avx2_d18.c; CPUs
-without AVX-512) and portable C; `simd_width()` says which one runs.
+AVX-512 (pgn_avx512.c, pgn_avx512_lanes.c), AVX2 + FMA (pgn_avx2.c, pgn_avx2_d18.c,
+pgn_avx2_lanes.c; CPUs without AVX-512) and portable C; `simd_width()` says which one runs.
 
 pgn_geom.c and pgn_project.c are compiled without fast-math and with -ffp-contract=off
 (distances must round exactly like the oracle's; an index row's projection must not depend
 on the rows beside it). The stage files (pgn_stage.c, pgn_avx512.c, pgn_avx512_lanes.c,
-pgn_avx2.c, pgn_avx2_d18.c, pgn_encode.c) and pgn_search.c use -ffast-math (vectorised
-code, glibc's libmvec). pgn_dots.c (the exact vote's cosines) is built without fast-math
-and with -ffp-contract=off, so that a dot's summation order is its source's in any batch.
-pgn_head.c (a lone query's head, bank/lone.py: -inf marks absent classes), pgn_lone.c (a
-lone cloud's helper thread) and pgn_peak.c (roofline micro-benchmarks) are built without
-fast-math. The link step omits -ffast-math so that gcc does not add crtfastmath.o, which
-would flush denormals to zero process-wide.
+pgn_avx2.c, pgn_avx2_d18.c, pgn_avx2_lanes.c, pgn_encode.c) and pgn_search.c use
+-ffast-math (vectorised code, glibc's libmvec). pgn_dots.c (the exact vote's cosines) is
+built without fast-math and with -ffp-contract=off, so that a dot's summation order is its
+source's in any batch. pgn_head.c (a lone query's head, bank/lone.py: -inf marks absent
+classes), pgn_lone.c (a lone cloud's helper thread) and pgn_peak.c (roofline
+micro-benchmarks) are built without fast-math. The link step omits -ffast-math so that gcc
+does not add crtfastmath.o, which would flush denormals to zero process-wide.
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_avx512_lanes.c': ['-ffast-math'],  # stage 1 with neighbours in the lanes
             'pgn_avx2.c': ['-ffast-math'],  # AVX2 + FMA stage loops (CPUs without AVX-512)
             'pgn_avx2_d18.c': ['-ffast-math'],  # AVX2 stage 1 with derived Gaussians
+            'pgn_avx2_lanes.c': ['-ffast-math'],  # AVX2 stage 1, neighbours in the lanes
             'pgn_encode.c': ['-ffast-math'],
             # a lone cloud's helper thread (no arithmetic: the chunks run in pgn_encode.c)
             'pgn_lone.c': ['-fno-fast-math'],

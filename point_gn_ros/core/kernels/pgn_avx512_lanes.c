@@ -8,7 +8,7 @@
  * P = exp(-2 q h w) (w: the neighbour's offset on that axis) and T_l = exp(2 q l h b_m +
  * q l^2 h^2): the separable form of sep_t, the powers taken one step at a time. An axis
  * then costs 2 exponentials per 16 neighbours (one block) instead of one per channel.
- * pgn_lanes_plan picks the blocks (lanes_range_ok).
+ * pgn_lanes_plan (pgn_stage.c) picks the blocks (lanes_range_ok).
  *
  * The offset half needs the neighbours' feature rows by channel: transposed once per
  * centre into a channel-major table. Each channel's max and sum are kept per lane and
@@ -17,48 +17,6 @@
  * lone cloud's chunks stay bit-identical.
  */
 #include "pgn_common.h"
-
-/* Whether blocks of B Gaussians (L = B - 1 steps of P from A_m) are safe in float for nc
- * centres in (-1, 1) at this q. A step's running product A_m P^l is pe_l / T_l and
- * |log T_l| <= 2 |q| L h + |q| L^2 h^2, kept under 40 so that T^2 (the rescaling) stays in
- * range too; P = exp(-2 q h w) stays in range for |w| <= W. When A_m underflows (|b_m - w| >
- * sqrt(87 / |q|)) the block's largest Gaussian is below exp(-(sqrt(87) - L h sqrt|q|)^2),
- * under e^-30 for L h sqrt|q| < 3.8: only such values are lost. */
-static int lanes_range_ok(int64_t nc, double q, int64_t B) {
-    const double aq = fabs(q), h = 2.0 / (double)(nc + 1), W = 1.0 + sqrt(87.0 / aq);
-    const double L = (double)(B - 1);
-    return L * h * sqrt(aq) < 3.8 && 2.0 * aq * L * h + aq * L * L * h * h < 40.0
-           && 2.0 * aq * h * W < 80.0;
-}
-
-/* Blocks for nc Gaussians per axis at this q: the fewest that pass lanes_range_ok.
- * Fills lp (b: (nblk,) block bases, T: (nc,) T of each centre index j = m B + l); returns
- * 0 when even single Gaussians fail (the caller keeps the channels-in-lanes kernel). */
-int pgn_lanes_plan(int64_t nc, float q, lanes_t *lp, float *b, float *T) {
-    if (nc < 1 || nc > PGN_LANES_MAXC) return 0;
-    const double qd = (double)q, h = 2.0 / (double)(nc + 1), b0 = -1.0 + h;
-    for (int64_t nblk = 1; nblk <= nc; ++nblk) {
-        const int64_t B = (nc + nblk - 1) / nblk;
-        if (!lanes_range_ok(nc, qd, B)) continue;
-        lp->nc = nc;
-        lp->B = B;
-        lp->nblk = (nc + B - 1) / B;
-        lp->ql = (float)(-qd * 1.4426950408889634);
-        lp->h2ql = (float)(-2.0 * qd * h * 1.4426950408889634);
-        lp->W = (float)(1.0 + sqrt(87.0 / fabs(qd)));
-        for (int64_t j = 0; j < nc; ++j) {
-            const int64_t m = j / B, l = j % B;
-            const double bm = b0 + (double)(B * m) * h;
-            b[m] = (float)bm;
-            T[j] = (float)exp(2.0 * qd * (double)l * h * bm
-                              + qd * (double)(l * l) * h * h);
-        }
-        lp->b = b;
-        lp->T = T;
-        return 1;
-    }
-    return 0;
-}
 
 #if defined(__AVX512F__)
 /* 16 channels' lane partials V (16, 16) reduced over the lanes: lane c of the result is
@@ -87,12 +45,6 @@ PGN_RED16(red16_add, _mm512_add_ps)
 #undef PGN_RED16
 
 #define NG 8  /* groups of 16 neighbours held in registers: 128 neighbours a chunk */
-
-/* Floats of scratch pgn_aggregate_lanes_avx512 needs for K neighbours. */
-int64_t pgn_lanes_scratch(int64_t K) {
-    const int64_t Kc = (K + 16 * NG - 1) / (16 * NG) * (16 * NG);
-    return (32 + 3) * Kc + 2 * 64 * 16 + 4 * 64;
-}
 
 /* feat, cidx, nb, vx, r, out as pgn_stage_aggregate; lp: pgn_lanes_plan's blocks for the
  * 2D / 3 Gaussians per axis; scr: pgn_lanes_scratch(K) floats, 64-byte aligned. */

@@ -89,9 +89,9 @@ static inline __m256 exp2_neg_avx2(__m256 t) {
 }
 #endif
 
-/* Separable Gaussians with neighbours in the lanes (pgn_avx512_lanes.c): nc Gaussians per
- * axis in nblk blocks of B (the last may be shorter) starting at b[m]; T: (nc,), the T_l
- * of Gaussian j = m B + l. */
+/* Separable Gaussians with neighbours in the lanes (pgn_avx512_lanes.c, pgn_avx2_lanes.c;
+ * the plan and the scratch size in pgn_stage.c): nc Gaussians per axis in nblk blocks of B
+ * (the last may be shorter) starting at b[m]; T: (nc,), the T_l of Gaussian j = m B + l. */
 #define PGN_LANES_MAXC 32
 typedef struct {
     int64_t nc, B, nblk;
@@ -99,8 +99,13 @@ typedef struct {
     const float *b, *T;
 } lanes_t;
 int pgn_lanes_plan(int64_t nc, float q, lanes_t *lp, float *b, float *T);
-#if defined(__AVX512F__)
 int64_t pgn_lanes_scratch(int64_t K);
+#if defined(PGN_AVX2)
+void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
+                              const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                              float r, const lanes_t *lp, float *out, float *scr);
+#endif
+#if defined(__AVX512F__)
 void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                 float r, const lanes_t *lp, float *out, float *scr);

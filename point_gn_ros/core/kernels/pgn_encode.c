@@ -100,12 +100,12 @@ typedef struct agg_job {
     sep_t fx[2];          /* per thread: its own A / E scratch */
     int use_fx, d32;
     float *pe[2], *mx[2], *sm[2];
+    const lanes_t *lanes;  /* stage 1 with neighbours in the lanes (SIMD builds), else NULL */
+    float *lscr[2];        /* its scratch, per thread */
 #if defined(__AVX512F__)
     const float *ccs;
     const __mmask16 *m1, *m2;
     float sc;
-    const lanes_t *lanes;  /* neighbours in the lanes (stage 1), else NULL */
-    float *lscr[2];        /* its scratch, per thread */
 #elif defined(PGN_AVX2)
     const float *ccs;
     const int32_t *lane_axis;
@@ -249,6 +249,13 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
         return;
     }
 #endif
+#if defined(PGN_AVX2) && !defined(PGN_NO_LANES)
+    if (j->lanes) {
+        pgn_aggregate_lanes_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes,
+                                 out, j->lscr[tid]);
+        return;
+    }
+#endif
 #if defined(PGN_AVX2) && !defined(PGN_NO_D32)
     if (j->d18) {
         pgn_aggregate_d18_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cents,
@@ -331,7 +338,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     /* per-centre partial sums: feature offsets (parts), coordinate offsets (oparts) */
     float *parts = xalloc(sizeof(float) * (size_t)(2 * S1));
     float *oparts = xalloc(sizeof(float) * (size_t)(2 * S1));
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) || defined(PGN_AVX2)
     /* stage 1 with neighbours in the lanes: its scratch per thread */
     const int64_t LS = pgn_lanes_scratch(K1);
     float *lscr = xalloc(sizeof(float) * (size_t)LS * (size_t)npar);
@@ -342,7 +349,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
     int rc = 0;
     TOC(11, 11);
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) || defined(PGN_AVX2)
     if (!lscr) {
         rc = -1;
         goto done;
@@ -518,6 +525,8 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         const float sc = sqrtf(-q * 1.44269504088896341f);
         float ccs[64];
         int32_t lane_axis[64];
+        lanes_t lanes;
+        float lanes_b[PGN_LANES_MAXC], lanes_T[2 * PGN_LANES_MAXC];
         if (!fx && D > 16 && D <= 32) {
             /* the same lanes as the AVX-512 path, axis per lane instead of masks */
             for (int i = 0; i < 64; ++i) {
@@ -531,6 +540,13 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             /* 4 exps per neighbour instead of 8 where the factors stay in range */
             job.d18 = pgn_d18_ok(D, q);
             job.cents = cents;
+#endif
+#if !defined(PGN_NO_LANES)
+            if (pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T)) {
+                job.lanes = &lanes;
+                job.lscr[0] = lscr;
+                job.lscr[1] = par ? lscr + LS : NULL;
+            }
 #endif
         }
 #endif
