@@ -71,8 +71,8 @@ void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
  * by blends of P, P^2, P^4 multiplied in the same order as the AVX-512 masked multiplies.
  * AVX2 has no cheap masked store, so max and sum live in a per-axis padded layout (axis a
  * at a * 8M, lanes past its n centres computed and ignored) and a block never spills into
- * the next axis. G: per lane cf[ch] (ch < D) or cf[ch - D]; RV: r where ch < D, else 0;
- * G2: 0 where ch < D, else G. */
+ * the next axis. G: per lane cf[ch] (ch < D) or cf[ch - D]; RV: r / T where ch < D, else 0;
+ * G2: 0 where ch < D, else G / T (T folded out: pgn_aggregate_sep_avx2). */
 #ifndef SEP_NT
 #define SEP_NT 8  /* neighbours per pass: one max / sum update per block */
 #endif
@@ -95,15 +95,15 @@ static inline __attribute__((always_inline)) void sep_pass8(
         }
         for (int64_t m = 0; m < M; ++m) {
             const int64_t ch = a * n + 8 * m, pa = (a * M + m) * 8;
-            const __m256 T = _mm256_loadu_ps(fx->T + 8 * m);
             const __m256 g = _mm256_load_ps(G + pa);
             const __m256 rv = _mm256_load_ps(RV + pa), g2 = _mm256_load_ps(G2 + pa);
             const int any_off = !_mm256_testz_si256(_mm256_castps_si256(rv),
                                                     _mm256_castps_si256(rv));
             __m256 w[SEP_NT];
             for (int i = 0; i < nt; ++i) {
-                const __m256 am = _mm256_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]);
-                const __m256 pe = _mm256_mul_ps(am, _mm256_mul_ps(T, e[i]));
+                /* pe / T: T is folded into RV, G2 and the caller's final scaling */
+                const __m256 pe = _mm256_mul_ps(
+                    _mm256_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]), e[i]);
                 if (any_off) {
                     /* lanes past D read on into the next row or the table's slack
                      * (pgn_encode.c allocates 16 floats more), finite: times 0 below.
@@ -114,7 +114,7 @@ static inline __attribute__((always_inline)) void sep_pass8(
                                                      a == 0 ? pe : _mm256_add_ps(g2, pe));
                     w[i] = _mm256_mul_ps(x, pe);
                 } else {
-                    w[i] = _mm256_mul_ps(_mm256_add_ps(g, pe), pe);
+                    w[i] = _mm256_mul_ps(_mm256_add_ps(g2, pe), pe);
                 }
             }
             __m256 wm = w[0], ws = w[0];
@@ -140,13 +140,19 @@ static inline __attribute__((always_inline)) void sep_pass8(
 void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, float *out, float *mx, float *sm, float *G, float *RV,
-                            float *G2, int32_t *SRC, sep_t *fx) {
+                            float *G2, int32_t *SRC, float *IT, float *T2, sep_t *fx) {
     const int64_t Dp = padded(D), D2 = 2 * D, D2p = padded(D2), nta = 3 * K;
     const int64_t n = fx->n, M = fx->M, np = 3 * 8 * M;
     const float invk = 1.0f / (float)K;
+    /* pe = T A e: w = (f + pe) pe = T^2 (f / T + A e) A e (T > 0), so the passes aggregate
+     * with RV = r / T, G2 = G / T and the results are scaled by T^2 (encode_one checks the
+     * range: tfold_ok) */
     for (int64_t p = 0; p < np; ++p) {
         const int64_t a = p / (8 * M), j = p % (8 * M), ch = a * n + j;
-        RV[p] = j < n && ch < D ? r : 0.0f;
+        const float T = fx->T[j];
+        IT[p] = 1.0f / T;
+        T2[p] = T * T;
+        RV[p] = j < n && ch < D ? r / T : 0.0f;
         SRC[p] = j < n ? (int32_t)(ch < D ? ch : ch - D) : -1;  /* G's source channel */
     }
     for (int64_t c = 0; c < S; ++c) {
@@ -154,7 +160,7 @@ void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
         const int32_t *nr = nb + c * K;
         for (int64_t p = 0; p < np; ++p) {
             G[p] = SRC[p] >= 0 ? cf[SRC[p]] : 0.0f;
-            G2[p] = RV[p] != 0.0f ? 0.0f : G[p];
+            G2[p] = RV[p] != 0.0f ? 0.0f : G[p] * IT[p];
             mx[p] = -INFINITY;
             sm[p] = 0.0f;
         }
@@ -173,7 +179,7 @@ void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
         for (int a = 0; a < 3; ++a)
             for (int64_t j = 0; j < n; ++j) {
                 const int64_t p = a * 8 * M + j;
-                o[a * n + j] = gelu(mx[p] + sm[p] * invk);
+                o[a * n + j] = gelu(T2[p] * (mx[p] + sm[p] * invk));
             }
         for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
     }

@@ -144,7 +144,7 @@ void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
 void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, float *out, float *mx, float *sm, float *G, float *RV,
-                            float *G2, int32_t *SRC, sep_t *fx);
+                            float *G2, int32_t *SRC, float *IT, float *T2, sep_t *fx);
 /* pgn_avx2_d18.c */
 int pgn_d18_ok(int64_t D, float q);
 void pgn_aggregate_d18_avx2(const float *feat, int64_t D, const int64_t *cidx,

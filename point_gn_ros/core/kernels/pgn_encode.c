@@ -272,7 +272,8 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     if (j->use_fx) {  /* G, RV, G2, SRC in the pe buffers, which this path does not use */
         pgn_aggregate_sep_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
                                j->sm[tid], j->pe[tid], j->pe[tid] + j->PS, j->pe[tid] + 3 * j->PS,
-                               (int32_t *)(j->pe[tid] + 2 * j->PS), &j->fx[tid]);
+                               (int32_t *)(j->pe[tid] + 2 * j->PS), j->pe[tid] + 4 * j->PS,
+                               j->pe[tid] + 5 * j->PS, &j->fx[tid]);
         return;
     }
 #endif
@@ -287,6 +288,15 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     pgn_stage_aggregate(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cc, j->ax, j->q, out,
                     j->pe[tid], j->PS, j->mx[tid], j->sm[tid], j->use_fx ? &j->fx[tid] : NULL);
 }
+
+/* Whether a separable kernel that folds T out of its products (w = T^2 (f / T + A e) A e)
+ * keeps T^2 in float range for blocks of L + 1: |log T_l| <= 2 |q| L h + |q| L^2 h^2 < 40. */
+#if defined(__AVX512F__) || defined(PGN_AVX2)
+static int tfold_ok(int64_t nc, double q, int L) {
+    const double h = 2.0 / (double)(nc + 1), aq = fabs(q);
+    return 2.0 * aq * L * h + aq * L * L * h * h < 40.0;
+}
+#endif
 
 /* agg_chunk as the lone runtime calls it. */
 static void agg_chunk_fn(void *job, int tid, int64_t chunk) { agg_chunk(job, tid, chunk); }
@@ -317,7 +327,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
      * declare their pointers 64-byte aligned */
     const int64_t VS = padded(Dmax + 4 * PAD), PS = VS;
     float *vec = xalloc(sizeof(float) * (size_t)VS * 3);
-    float *pe = xalloc(sizeof(float) * (size_t)PS * 4);
+    float *pe = xalloc(sizeof(float) * (size_t)PS * 6);
     int32_t *ax = xalloc(sizeof(int32_t) * (size_t)VS);
     int64_t *cidx = xalloc(sizeof(int64_t) * (size_t)S1);
     const int64_t Mmax = (Dmax / 3 + 7) / 8;
@@ -327,7 +337,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     float *sepE = xalloc(sizeof(float) * (size_t)K1 * 3 * 9);  /* rows 0..8 of E */
     /* the helper's own scratch (pe buffers, mx / sm, separable A / E) */
     const int npar = par ? 2 : 1;
-    float *pe2 = par ? xalloc(sizeof(float) * (size_t)PS * 4) : NULL;
+    float *pe2 = par ? xalloc(sizeof(float) * (size_t)PS * 6) : NULL;
     float *vec2 = par ? xalloc(sizeof(float) * (size_t)VS * 2) : NULL;
     float *sepA2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax) : NULL;
     float *sepE2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * 9) : NULL;
@@ -448,16 +458,17 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
         for (int64_t d = 0; d < D2; ++d) { cc[d] = cents[d % nc]; ax[d] = (int32_t)(d / nc); }
         sep_t fxs, *fx = NULL;
-        /* blocks of 16 where the AVX-512 path runs and float range allows, else of 8 */
+        /* blocks of 16 where the AVX-512 path runs and float range allows, else of 8; the
+         * kernels that fold T out (sep_pass16, AVX2's sep_pass8) also need tfold_ok */
         int B = 0;
 #if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
-        /* and where T^2 (pgn_aggregate_sep_avx512 folds T out) stays in range: |log T| <=
-         * 2 |q| 15 h + |q| 15^2 h^2 < 40 */
-        const double h16 = 2.0 / (double)(nc + 1);
-        if (pgn_sep_ok(nc, (double)q, 16) && -2.0 * q * 15.0 * h16 - q * 225.0 * h16 * h16 < 40.0)
-            B = 16;
+        if (pgn_sep_ok(nc, (double)q, 16) && tfold_ok(nc, (double)q, 15)) B = 16;
 #endif
+#if defined(PGN_AVX2)
+        if (!B && pgn_sep_ok(nc, (double)q, 8) && tfold_ok(nc, (double)q, 7)) B = 8;
+#else
         if (!B && pgn_sep_ok(nc, (double)q, 8)) B = 8;
+#endif
         if (B) {
             /* grid from the exact linspace formula, in double, rounded once */
             const double h = 2.0 / (double)(nc + 1), b0 = -1.0 + h, qd = (double)q;
