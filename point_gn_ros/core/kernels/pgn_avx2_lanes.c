@@ -62,12 +62,7 @@ void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
     float *SM = MX + 64 * 8;    /* (2D, 8): per-lane sum */
     float *acc = SM + 64 * 8, *rs = acc + 64, *ct = rs + 64, *t2 = ct + 64;
     const float invk = 1.0f / (float)K, W = lp->W;
-    for (int64_t ch = 0; ch < 64; ++ch) {  /* as pgn_aggregate_lanes_avx512 */
-        const float T = ch < D2 ? lp->T[ch % nc] : 1.0f;
-        rs[ch] = r / T;
-        ct[ch] = 1.0f / T;
-        t2[ch] = T * T;
-    }
+    pgn_lanes_scales(lp, D2, r, rs, ct, t2);
     const __m256 ql = _mm256_set1_ps(lp->ql), nh2ql = _mm256_set1_ps(-lp->h2ql);
     const __m256 ninf = _mm256_set1_ps(-INFINITY), zero = _mm256_setzero_ps();
     const __m256i iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);

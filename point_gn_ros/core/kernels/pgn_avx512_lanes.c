@@ -59,17 +59,9 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
     float *MX = WV + 3 * Kc;    /* (2D, 16): per-lane max of each channel */
     float *SM = MX + 64 * 16;   /* (2D, 16): per-lane sum, then 64 floats of results */
     const float invk = 1.0f / (float)K;
-    /* pe_l = T_l U_l with U_l = A_m P^l: w = (f + T U) T U = T^2 (f / T + U) U, so the
-     * lanes aggregate (f / T + U) U and each channel's max and sum are scaled by T^2 at the
-     * end (T > 0): one multiply a step less. rs: r / T of the offset channels, ct: 1 / T of
-     * the centre channels, t2: T^2. */
+    /* T folded out (pgn_lanes_scales): one multiply a step less */
     float *rs = SM + 64 * 16 + 64, *ct = rs + 64, *t2 = ct + 64;
-    for (int64_t ch = 0; ch < 64; ++ch) {
-        const float T = ch < D2 ? lp->T[ch % nc] : 1.0f;
-        rs[ch] = r / T;
-        ct[ch] = 1.0f / T;
-        t2[ch] = T * T;
-    }
+    pgn_lanes_scales(lp, D2, r, rs, ct, t2);
     const __m512 vW = _mm512_set1_ps(lp->W);
     const __m512 vnW = _mm512_set1_ps(-lp->W), zero = _mm512_setzero_ps();
     const __m512 ql = _mm512_set1_ps(lp->ql), nh2ql = _mm512_set1_ps(-lp->h2ql);

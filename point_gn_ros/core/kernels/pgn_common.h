@@ -100,10 +100,16 @@ typedef struct {
 } lanes_t;
 int pgn_lanes_plan(int64_t nc, float q, lanes_t *lp, float *b, float *T);
 int64_t pgn_lanes_scratch(int64_t K);
+void pgn_lanes_scales(const lanes_t *lp, int64_t D2, float r, float *rs, float *ct, float *t2);
 #if defined(PGN_AVX2)
 void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
                               float r, const lanes_t *lp, float *out, float *scr);
+#endif
+#if defined(__AVX512F__)
+#define pgn_aggregate_lanes pgn_aggregate_lanes_avx512
+#elif defined(PGN_AVX2)
+#define pgn_aggregate_lanes pgn_aggregate_lanes_avx2
 #endif
 #if defined(__AVX512F__)
 void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,

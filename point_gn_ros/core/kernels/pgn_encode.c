@@ -235,10 +235,10 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     const int32_t *nb = j->nb + c0 * j->K;
     const float *vx = j->vx + c0 * j->K * 3;
     float *out = j->out + c0 * j->D2p;
-#if defined(__AVX512F__) && !defined(PGN_NO_LANES)
-    if (j->lanes) {
-        pgn_aggregate_lanes_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes,
-                                   out, j->lscr[tid]);
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
+    if (j->lanes) {  /* stage 1 with neighbours in the lanes */
+        pgn_aggregate_lanes(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes, out,
+                            j->lscr[tid]);
         return;
     }
 #endif
@@ -246,13 +246,6 @@ static void agg_chunk(agg_job *j, int tid, int64_t chunk) {
     if (j->d32) {
         pgn_aggregate_d32_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs, j->m1,
                              j->m2, j->sc, out, j->mx[tid]);
-        return;
-    }
-#endif
-#if defined(PGN_AVX2) && !defined(PGN_NO_LANES)
-    if (j->lanes) {
-        pgn_aggregate_lanes_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes,
-                                 out, j->lscr[tid]);
         return;
     }
 #endif
@@ -511,8 +504,6 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         const float sc = sqrtf(-q * 1.44269504088896341f);
         float ccs[64];
         __mmask16 m1[4] = {0}, m2[4] = {0};
-        lanes_t lanes;
-        float lanes_b[PGN_LANES_MAXC], lanes_T[2 * PGN_LANES_MAXC];
         if (!fx && D > 16 && D <= 32) {
             /* register-resident path; pe lanes: channels [0, 32) and [D, D + 32) */
             for (int i = 0; i < 64; ++i) {
@@ -524,20 +515,11 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             }
             job.d32 = 1;
             job.ccs = ccs; job.m1 = m1; job.m2 = m2; job.sc = sc;
-#if !defined(PGN_NO_LANES)
-            if (pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T)) {
-                job.lanes = &lanes;
-                job.lscr[0] = lscr;
-                job.lscr[1] = par ? lscr + LS : NULL;
-            }
-#endif
         }
 #elif defined(PGN_AVX2) && !defined(PGN_NO_D32)
         const float sc = sqrtf(-q * 1.44269504088896341f);
         float ccs[64];
         int32_t lane_axis[64];
-        lanes_t lanes;
-        float lanes_b[PGN_LANES_MAXC], lanes_T[2 * PGN_LANES_MAXC];
         if (!fx && D > 16 && D <= 32) {
             /* the same lanes as the AVX-512 path, axis per lane instead of masks */
             for (int i = 0; i < 64; ++i) {
@@ -552,13 +534,16 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             job.d18 = pgn_d18_ok(D, q);
             job.cents = cents;
 #endif
-#if !defined(PGN_NO_LANES)
-            if (pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T)) {
-                job.lanes = &lanes;
-                job.lscr[0] = lscr;
-                job.lscr[1] = par ? lscr + LS : NULL;
-            }
+        }
 #endif
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
+        /* stage 1 (16 < D <= 32) with neighbours in the lanes where a block plan is safe */
+        lanes_t lanes;
+        float lanes_b[PGN_LANES_MAXC], lanes_T[2 * PGN_LANES_MAXC];
+        if (!fx && D > 16 && D <= 32 && pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T)) {
+            job.lanes = &lanes;
+            job.lscr[0] = lscr;
+            job.lscr[1] = par ? lscr + LS : NULL;
         }
 #endif
         pgn_par_run(par, agg_chunk_fn, &job, job.nchunks);

@@ -270,3 +270,16 @@ int64_t pgn_lanes_scratch(int64_t K) {
     const int64_t Kc = (K + 127) / 128 * 128;
     return (32 + 5) * Kc + 2 * 64 * 16 + 4 * 64;
 }
+
+/* Per-channel factors of the neighbour-lanes kernels for 2D (<= 64) pe channels: with pe =
+ * T U the lanes aggregate (f / T + U) U and scale each channel's max and sum by T^2 (T >
+ * 0). rs: r / T (the offset half's rows), ct: 1 / T (the centre half's values), t2: T^2;
+ * 64 floats each, T = 1 past 2D. */
+void pgn_lanes_scales(const lanes_t *lp, int64_t D2, float r, float *rs, float *ct, float *t2) {
+    for (int64_t ch = 0; ch < 64; ++ch) {
+        const float T = ch < D2 ? lp->T[ch % lp->nc] : 1.0f;
+        rs[ch] = r / T;
+        ct[ch] = 1.0f / T;
+        t2[ch] = T * T;
+    }
+}
