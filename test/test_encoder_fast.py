@@ -282,6 +282,7 @@ def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.n
     (30, 37, 0.25),
     (27, 60, 0.1),    # sharp Gaussians: 5 blocks per axis
     (27, 60, 0.05),   # sharper: a block per Gaussian
+    (27, 60, 0.02),   # too sharp for any block: the channels-in-lanes kernel instead
 ])
 def test_stage1_with_neighbours_in_the_lanes_agrees_with_oracle(
         real_clouds: np.ndarray, init_dim: int, k: int, sigma: float) -> None:
