@@ -186,6 +186,46 @@ def test_prepare_yaw_align_only_when_asked() -> None:
     assert np.isfinite(prepare(np.zeros((3, 3), np.float32), yaw_align=True)).all()
 
 
+def test_compiled_prepare_matches_its_numpy_forms(monkeypatch: pytest.MonkeyPatch) -> None:
+    # With the kernels, prepare() normalises and yaw-aligns in C (pgn_prepare.c): normalize's
+    # bits, the yaw within a float32 rounding and in the same frame (axis and signs), on
+    # clouds with third moments near zero and on degenerate ones
+    from point_gn_ros.core import sampling
+    if sampling._compiled_prepare() is None:
+        pytest.skip('compiled kernels unavailable: prepare() runs its numpy forms')
+    rng = np.random.default_rng(12)
+    half = rng.normal(size=(512, 3)) * np.array([2.0, 1.0, 0.5])
+    mirror_x = np.concatenate([half, half * np.array([-1.0, 1.0, 1.0])])
+    g = np.linspace(-1.0, 1.0, 32)
+    square = np.concatenate([np.stack(np.meshgrid(g, g), -1).reshape(-1, 2),
+                             np.zeros((1024, 1))], axis=1)
+    line = np.linspace(-1.0, 1.0, 300)[:, None] * np.eye(3)[:, None, :]  # along x, y, z
+    clouds = [rng.normal(size=(n, 3)) * rng.uniform(0.3, 2.0, 3) + rng.uniform(-5, 5, 3)
+              for n in (700, 1024, 3000) for _ in range(10)]
+    clouds += [mirror_x, mirror_x * np.array([1.0, -1.0, 1.0]) + mirror_x, square, *line,
+               np.array([[1.5, -2.0, 3.0]]), np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]),
+               np.full((50, 3), 7.0), rng.normal(size=(2000, 3)) * 1e37]
+    got = [(prepare(c.astype(np.float32)), prepare(c.astype(np.float32), yaw_align=True))
+           for c in clouds]
+    for cloud, (plain, yawed) in zip(clouds, got, strict=True):
+        x = resample(cloud.astype(np.float32), 1024)
+        np.testing.assert_array_equal(plain, normalize(x))
+        ref = canonical_yaw(normalize(x))
+        # an axis whose third moment is zero but for rounding (a cloud exactly symmetric
+        # about it) may get either sign: the two sums round differently
+        flip = np.where(np.abs((ref[:, :2].astype(np.float64) ** 3).mean(0)) < 1e-12, -1, 1)
+        assert min(np.abs(yawed[:, :2] - ref[:, :2] * f).max()
+                   for f in ([1, 1], [flip[0], 1], [1, flip[1]], flip)) <= 1e-6
+        np.testing.assert_array_equal(yawed[:, 2], ref[:, 2])
+    # and prepare() does not call the numpy forms at all
+    def numpy_form(*_: object) -> np.ndarray:
+        raise AssertionError('prepare() ran a numpy form')
+    monkeypatch.setattr(sampling, 'normalize', numpy_form)
+    monkeypatch.setattr(sampling, 'canonical_yaw', numpy_form)
+    np.testing.assert_array_equal(prepare(clouds[0].astype(np.float32), yaw_align=True),
+                                  got[0][1])
+
+
 @pytest.mark.parametrize('n_in', [2, 3, 16, 340, 1000, 1023])
 def test_midpoint_fill_keeps_every_point_and_adds_midpoints_of_near_neighbours(n_in: int
                                                                                ) -> None:

