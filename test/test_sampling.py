@@ -204,7 +204,7 @@ def test_compiled_prepare_matches_its_numpy_forms(monkeypatch: pytest.MonkeyPatc
               for n in (700, 1024, 3000) for _ in range(10)]
     clouds += [mirror_x, mirror_x * np.array([1.0, -1.0, 1.0]) + mirror_x, square, *line,
                np.array([[1.5, -2.0, 3.0]]), np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]),
-               np.full((50, 3), 7.0), rng.normal(size=(2000, 3)) * 1e37]
+               np.full((50, 3), 7.0), rng.normal(size=(2000, 3)) * 1e15]
     got = [(prepare(c.astype(np.float32)), prepare(c.astype(np.float32), yaw_align=True))
            for c in clouds]
     for cloud, (plain, yawed) in zip(clouds, got, strict=True):
