@@ -54,7 +54,7 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
     const int64_t Dp = padded(D), D2 = 2 * D, D2p = padded(D2), nc = lp->nc;
     const int64_t G = (K + 15) / 16, Kc = (K + 16 * NG - 1) / (16 * NG) * (16 * NG);
     const int64_t Gc = Kc / 16;
-    float *RT = scr;            /* (D, Kc): (row - cf) r by channel, 0 past K */
+    float *RT = scr;            /* (D, Kc): (row - cf) r / T by channel, 0 past K */
     float *WV = RT + D * Kc;    /* (3, Kc): clamped offsets by axis */
     float *MX = WV + 3 * Kc;    /* (2D, 16): per-lane max of each channel */
     float *SM = MX + 64 * 16;   /* (2D, 16): per-lane sum, then 64 floats of results */
@@ -116,10 +116,10 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
                 }
                 const __m512d t0 = _mm512_castps_pd(_mm512_unpacklo_ps(Y[0], Y[1]));
                 const __m512d t1 = _mm512_castps_pd(_mm512_unpackhi_ps(Y[0], Y[1]));
-                const __m512d t2 = _mm512_castps_pd(_mm512_unpacklo_ps(Y[2], Y[3]));
+                const __m512d t2v = _mm512_castps_pd(_mm512_unpacklo_ps(Y[2], Y[3]));
                 const __m512d t3 = _mm512_castps_pd(_mm512_unpackhi_ps(Y[2], Y[3]));
-                const __m512 col[4] = {_mm512_castpd_ps(_mm512_unpacklo_pd(t0, t2)),
-                                       _mm512_castpd_ps(_mm512_unpackhi_pd(t0, t2)),
+                const __m512 col[4] = {_mm512_castpd_ps(_mm512_unpacklo_pd(t0, t2v)),
+                                       _mm512_castpd_ps(_mm512_unpackhi_pd(t0, t2v)),
                                        _mm512_castpd_ps(_mm512_unpacklo_pd(t1, t3)),
                                        _mm512_castpd_ps(_mm512_unpackhi_pd(t1, t3))};
                 for (int64_t ch = 4 * k; ch < D && ch < 4 * k + 4; ++ch)

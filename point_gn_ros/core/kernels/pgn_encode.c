@@ -539,7 +539,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 #if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
         /* stage 1 (16 < D <= 32) with neighbours in the lanes where a block plan is safe */
         lanes_t lanes;
-        float lanes_b[PGN_LANES_MAXC], lanes_T[2 * PGN_LANES_MAXC];
+        float lanes_b[PGN_LANES_MAXC], lanes_T[PGN_LANES_MAXC];
         if (!fx && D > 16 && D <= 32 && pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T)) {
             job.lanes = &lanes;
             job.lscr[0] = lscr;
