@@ -124,7 +124,10 @@ KERNEL_BUILDS = {'portable': ([], set()),
                  'avx512bw, no vnni': (['-mavx512f', '-mavx512bw', '-mavx512vl',
                                         '-mno-avx512vnni'], {'avx512f', 'avx512bw', 'avx512vl'}),
                  'avx512 vnni': (['-mavx512f', '-mavx512bw', '-mavx512vl', '-mavx512vnni'],
-                                 {'avx512f', 'avx512bw', 'avx512vl', 'avx512_vnni'})}
+                                 {'avx512f', 'avx512bw', 'avx512vl', 'avx512_vnni'}),
+                 # pgn_knn.c's 16-bit codes (Ice Lake, Zen 4 and later)
+                 'avx512 vbmi2': (['-mavx512f', '-mavx512bw', '-mavx512vl', '-mavx512vbmi2'],
+                                  {'avx512f', 'avx512bw', 'avx512vl', 'avx512_vbmi2'})}
 
 
 def kernel_build(source: str, build: str, out_dir: Path, extra: tuple[str, ...] = ()

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from point_gn_ros.core.encoder_naive import fps as oracle_fps
+from point_gn_ros.core.encoder_naive import knn as oracle_knn
 from point_gn_ros.core.sampling import (FPS_MAX_INPUT, canonical_order, canonical_yaw,
                                         fps_indices, normalize,
                                         prepare, resample)
@@ -82,6 +83,46 @@ def test_every_simd_build_of_fps_ties_like_the_oracle(build: str, tmp_path: Path
         lib.pgn_fps_from(soa[0].ctypes.data, soa[1].ctypes.data, soa[2].ctypes.data, n, 300,
                          int(want[0]), got.ctypes.data, scratch.ctypes.data)
         np.testing.assert_array_equal(got, want, err_msg=f'{build}, {n} points, {kind}')
+
+
+@pytest.mark.parametrize('build', sorted(KERNEL_BUILDS))
+def test_every_simd_build_of_knn_ties_like_the_oracle(build: str, tmp_path: Path) -> None:
+    # pgn_knn.c counts and splits on floats (portable, AVX2, AVX-512) or on 16-bit codes
+    # (AVX-512 BW + VBMI2, 64 <= n): each build that this CPU runs, against the oracle's
+    # stable sort, with exact ties, tails past the vector blocks, a middle past 32 keys
+    # (duplicates) and centres whose k-th distances differ from their predecessor's guess
+    lib = kernel_build('pgn_knn.c', build, tmp_path,
+                       ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
+    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+    lib.pgn_knn.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, ptr, i64, i64, ptr, ptr, ptr,
+                            ctypes.c_float]
+    rng = np.random.default_rng(3)
+    for n, k, kind in ((1024, 120, 'normal'), (1000, 120, 'grid'), (517, 120, 'duplicated'),
+                       (512, 200, 'normal'), (63, 20, 'normal'), (64, 63, 'grid'),
+                       (100, 1, 'duplicated'), (2100, 7, 'normal')):
+        cloud = _cloud(n, 8)
+        if kind == 'grid':
+            cloud = np.round(cloud * 2) / 2
+        elif kind == 'duplicated':
+            cloud[n // 2:] = cloud[:n - n // 2]
+        cloud = cloud.astype(np.float32)
+        # centres: cloud points (a distance of +0), others near and far
+        centres = np.concatenate([cloud[rng.choice(n, 40)],
+                                  rng.normal(0, 1.5, (24, 3)).astype(np.float32)])
+        want = oracle_knn(torch.from_numpy(cloud), torch.from_numpy(centres), k).numpy()
+        p, c = np.ascontiguousarray(cloud.T), np.ascontiguousarray(centres.T)
+        nb = np.empty(len(centres) * k + 16, np.int32)
+        dist, keys = np.empty(n, np.float32), np.empty(2 * n + 32, np.uint64)
+        # the guess at the k-th distance (0: computed from the points) only steers the
+        # counting: far too small or too large, the rows must not change
+        for guess in (0.0, 1e-6, 50.0):
+            lib.pgn_knn(p[0].ctypes.data, p[1].ctypes.data, p[2].ctypes.data, n,
+                        c[0].ctypes.data, c[1].ctypes.data, c[2].ctypes.data, len(centres), k,
+                        nb.ctypes.data, dist.ctypes.data, keys.ctypes.data, guess)
+            got = np.sort(nb[:len(centres) * k].reshape(-1, k), axis=1)
+            np.testing.assert_array_equal(got, np.sort(want, axis=1),
+                                          err_msg=f'{build}, {n} points, k {k}, {kind}, '
+                                                  f'guess {guess}')
 
 
 def test_fps_start_is_geometric_so_order_does_not_matter() -> None:

@@ -10,7 +10,7 @@ The stage loops have three builds, chosen at compile time by what -march=native 
 AVX-512 (pgn_avx512.c, pgn_avx512_lanes.c), AVX2 + FMA (pgn_avx2.c, pgn_avx2_d18.c,
 pgn_avx2_lanes.c; CPUs without AVX-512) and portable C; `simd_width()` says which one runs.
 
-pgn_geom.c, pgn_project.c and pgn_prepare.c are compiled without fast-math and with
+pgn_geom.c, pgn_knn.c, pgn_project.c and pgn_prepare.c are compiled without fast-math and with
 -ffp-contract=off (distances must round exactly like the oracle's; an index row's projection
 must not depend on the rows beside it; prepare()'s normalisation rounds like numpy's). The
 stage files (pgn_stage.c, pgn_avx512.c, pgn_avx512_lanes.c, pgn_avx2.c, pgn_avx2_d18.c,
@@ -40,6 +40,7 @@ import numpy as np
 
 _SRC_DIR = Path(__file__).resolve().parent
 _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
+            'pgn_knn.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_stage.c': ['-ffast-math'],
             'pgn_avx512.c': ['-ffast-math'],
             'pgn_avx512_lanes.c': ['-ffast-math'],  # stage 1 with neighbours in the lanes
@@ -63,7 +64,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
 # included by the C files: part of the snapshot and the cache key
 _HEADERS = ('pgn_common.h', 'pgn_lone.h')
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
-ABI_VERSION = 1
+ABI_VERSION = 2
 _log = logging.getLogger(__name__)
 
 _lock = threading.Lock()
@@ -223,7 +224,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_fps_from.restype = None
     lib.pgn_fps_from.argtypes = [p, p, p, i64, i64, i64, p, p]
     lib.pgn_knn.restype = None
-    lib.pgn_knn.argtypes = [p, p, p, i64, p, p, p, i64, i64, p, p, p]
+    lib.pgn_knn.argtypes = [p, p, p, i64, p, p, p, i64, i64, p, p, p, ctypes.c_float]
     for name, args in (('pgn_peak_ops', [i64]), ('pgn_peak_exp', [i64]),
                        ('pgn_peak_read', [p, i64, i64])):
         getattr(lib, name).restype = ctypes.c_double
@@ -430,7 +431,7 @@ def knn_indices(xyz: np.ndarray, centres: np.ndarray, k: int) -> np.ndarray:
     keys = np.empty(2 * n + 32, dtype=np.uint64)
     lib.pgn_knn(p[0].ctypes.data, p[1].ctypes.data, p[2].ctypes.data, n, c[0].ctypes.data,
                 c[1].ctypes.data, c[2].ctypes.data, s, k, nb.ctypes.data, dist.ctypes.data,
-                keys.ctypes.data)
+                keys.ctypes.data, 0.0)
     out = nb[:s * k].reshape(s, k).astype(np.int64)
     # order each row like the oracle: by distance, then index
     d = centres[:, None, :] - xyz[out]

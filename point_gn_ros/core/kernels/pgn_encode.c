@@ -11,9 +11,10 @@ void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, i
              int64_t m, int64_t *idx, float *min_d);
 void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const float *cx,
              const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
-             uint64_t *keys);
+             uint64_t *keys, float guess);
+float pgn_knn_guess(const float *x, const float *y, const float *z, int64_t n, int64_t k);
 
-int pgn_abi_version(void) { return 1; }
+int pgn_abi_version(void) { return 2; }
 
 /* Lanes of the stage kernels this build runs: 16 (AVX-512), 8 (AVX2 + FMA), 0 (portable C). */
 int pgn_simd_width(void) {
@@ -85,6 +86,7 @@ typedef struct agg_job {
     float *part;
     const float *px, *py, *pz, *qx, *qy, *qz;
     int64_t n;
+    float guess;          /* pgn_knn_guess of the points: the same for every chunk */
     int32_t *nb_out;
     float *dist[2];
     uint64_t *keys[2];
@@ -165,9 +167,9 @@ static void knn_chunk(agg_job *j, int tid, int64_t c0, int64_t c1) {
     const int64_t K = j->K;
     if (c1 - 1 > c0)
         pgn_knn(j->px, j->py, j->pz, j->n, j->qx + c0, j->qy + c0, j->qz + c0, c1 - 1 - c0, K,
-                j->nb_out + c0 * K, j->dist[tid], j->keys[tid]);
+                j->nb_out + c0 * K, j->dist[tid], j->keys[tid], j->guess);
     pgn_knn(j->px, j->py, j->pz, j->n, j->qx + c1 - 1, j->qy + c1 - 1, j->qz + c1 - 1, 1, K,
-            j->tail[tid], j->dist[tid], j->keys[tid]);
+            j->tail[tid], j->dist[tid], j->keys[tid], j->guess);
     memcpy(j->nb_out + (c1 - 1) * K, j->tail[tid], sizeof(int32_t) * (size_t)K);
 }
 
@@ -397,6 +399,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             memset(&kj, 0, sizeof(kj));
             kj.knn = 1;
             kj.px = x; kj.py = y; kj.pz = z; kj.n = n;
+            kj.guess = pgn_knn_guess(x, y, z, n, K);
             kj.qx = cx; kj.qy = cy; kj.qz = cz;
             kj.S = S; kj.K = K; kj.nb_out = nb;
             kj.nchunks = S < 16 ? S : 16;
@@ -405,7 +408,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             kj.tail[0] = tails; kj.tail[1] = tails + K1 + 16;
             pgn_par_run(par, agg_chunk_fn, &kj, kj.nchunks);
         } else {
-            pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys);
+            pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys, 0.0f);
         }
         TOC(2, 1);
         TIC(3);
