@@ -14,8 +14,8 @@ pgn_geom.c, pgn_knn.c, pgn_project.c and pgn_prepare.c are compiled without fast
 -ffp-contract=off (distances must round exactly like the oracle's; an index row's projection
 must not depend on the rows beside it; prepare()'s normalisation rounds like numpy's). The
 stage files (pgn_stage.c, pgn_avx512.c, pgn_avx512_lanes.c, pgn_avx2.c, pgn_avx2_d18.c,
-pgn_avx2_lanes.c, pgn_encode.c) and pgn_search.c use -ffast-math (vectorised code, glibc's
-libmvec). pgn_dots.c (the exact vote's cosines) is built without fast-math and with
+pgn_avx2_lanes.c, pgn_encode.c, pgn_phases.c) and pgn_search.c use -ffast-math (vectorised
+code, glibc's libmvec). pgn_dots.c (the exact vote's cosines) is built without fast-math and with
 -ffp-contract=off, so that a dot's summation order is its source's in any batch.
 pgn_head.c (a lone query's head, bank/lone.py: -inf marks absent classes), pgn_lone.c (a
 lone cloud's helper thread) and pgn_peak.c (roofline micro-benchmarks) are built without
@@ -48,6 +48,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_avx2_d18.c': ['-ffast-math'],  # AVX2 stage 1 with derived Gaussians
             'pgn_avx2_lanes.c': ['-ffast-math'],  # AVX2 stage 1, neighbours in the lanes
             'pgn_encode.c': ['-ffast-math'],
+            'pgn_phases.c': ['-ffast-math'],  # the steps over a range of centres
             # a lone cloud's helper thread (no arithmetic: the chunks run in pgn_encode.c)
             'pgn_lone.c': ['-fno-fast-math'],
             'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
@@ -62,7 +63,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_head.c': ['-fno-fast-math'],
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
 # included by the C files: part of the snapshot and the cache key
-_HEADERS = ('pgn_common.h', 'pgn_lone.h')
+_HEADERS = ('pgn_common.h', 'pgn_lone.h', 'pgn_phases.h')
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
 ABI_VERSION = 2
 _log = logging.getLogger(__name__)

@@ -1,7 +1,7 @@
-/* Shared by the encoder's C files: pgn_stage.c (portable stage kernels), pgn_avx512.c
- * (AVX-512 stage kernels, compiled only where -march=native enables them) and
- * pgn_encode.c (one cloud end to end, the two-thread lone-cloud runtime). Hashed with the
- * sources for the kernel cache key (kernels/__init__.py).
+/* Shared by the encoder's C files: pgn_stage.c (portable stage kernels), the ISA kernels
+ * (pgn_avx512*.c, pgn_avx2*.c: compiled only where -march=native enables them),
+ * pgn_phases.c (the steps over a range of centres) and pgn_encode.c (one cloud end to end).
+ * Hashed with the sources for the kernel cache key (kernels/__init__.py).
  */
 #ifndef PGN_COMMON_H
 #define PGN_COMMON_H

@@ -1,0 +1,176 @@
+/* The encoder's steps over a range of a stage's centres: kNN rows, coordinate offsets, the
+ * feature-offset std's partials and the aggregation (the ISA kernel chosen by pgn_encode.c).
+ * Every centre's result depends on that centre only, so the chunks of a lone cloud give the
+ * same bits on either thread.
+ *
+ * Compiled with -O3 -march=native -ffast-math, like pgn_encode.c.
+ */
+#include "pgn_phases.h"
+
+/* The std pass's partials of one centre: the sums of e and e^2 over the offsets e of its
+ * K neighbours' feature rows from its own row cf (Dp channels), as floats. s1, s2: Dp
+ * floats of scratch (the portable path). Per-channel float partials (4 rows a pass, no
+ * horizontal sum per row), reduced once per centre; the caller adds them in double. */
+static void std_centre(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,
+                       const float *cf, float *s1, float *s2, float *a1, float *a2) {
+#if defined(__AVX512F__)
+    (void)s1; (void)s2;
+    pgn_std_centre_avx512(feat, Dp, nr, K, cf, a1, a2);
+#elif defined(PGN_AVX2)
+    (void)s1; (void)s2;
+    pgn_std_centre_avx2(feat, Dp, nr, K, cf, a1, a2);
+#else
+    for (int64_t d = 0; d < Dp; ++d) { s1[d] = 0.0f; s2[d] = 0.0f; }
+    int64_t t = 0;
+    for (; t + 4 <= K; t += 4) {
+        const float *r0 = feat + (int64_t)nr[t] * Dp, *r1 = feat + (int64_t)nr[t + 1] * Dp;
+        const float *r2 = feat + (int64_t)nr[t + 2] * Dp, *r3 = feat + (int64_t)nr[t + 3] * Dp;
+#pragma omp simd aligned(r0, r1, r2, r3, cf, s1, s2 : 64)
+        for (int64_t d = 0; d < Dp; ++d) {
+            const float e0 = r0[d] - cf[d], e1 = r1[d] - cf[d];
+            const float e2 = r2[d] - cf[d], e3 = r3[d] - cf[d];
+            s1[d] += (e0 + e1) + (e2 + e3);
+            s2[d] += (e0 * e0 + e1 * e1) + (e2 * e2 + e3 * e3);
+        }
+    }
+    for (; t < K; ++t) {
+        const float *r0 = feat + (int64_t)nr[t] * Dp;
+#pragma omp simd aligned(r0, cf, s1, s2 : 64)
+        for (int64_t d = 0; d < Dp; ++d) {
+            const float e0 = r0[d] - cf[d];
+            s1[d] += e0;
+            s2[d] += e0 * e0;
+        }
+    }
+    float x1 = 0.0f, x2 = 0.0f;
+#pragma omp simd reduction(+:x1, x2) aligned(s1, s2 : 64)
+    for (int64_t d = 0; d < Dp; ++d) { x1 += s1[d]; x2 += s2[d]; }
+    *a1 = x1; *a2 = x2;
+#endif
+}
+
+/* The kNN rows of centres [c0, c1). A row's search writes 16 int32 of slack past its
+ * end, i.e. into the next row: within a chunk that row is searched afterwards, but the
+ * next chunk's first row may already be done by the other thread, so a chunk's last row
+ * is searched into a private row and copied. */
+static void knn_chunk(agg_job *j, int tid, int64_t c0, int64_t c1) {
+    const int64_t K = j->K;
+    if (c1 - 1 > c0)
+        pgn_knn(j->px, j->py, j->pz, j->n, j->qx + c0, j->qy + c0, j->qz + c0, c1 - 1 - c0, K,
+                j->nb_out + c0 * K, j->dist[tid], j->keys[tid], j->guess);
+    pgn_knn(j->px, j->py, j->pz, j->n, j->qx + c1 - 1, j->qy + c1 - 1, j->qz + c1 - 1, 1, K,
+            j->tail[tid], j->dist[tid], j->keys[tid], j->guess);
+    memcpy(j->nb_out + (c1 - 1) * K, j->tail[tid], sizeof(int32_t) * (size_t)K);
+}
+
+/* Offsets of centres [c0, c1): v = xyz[nb] - centre (K, 3) per centre, and each centre's
+ * float sums of v and v^2 into part[2 c], part[2 c + 1] (the caller adds them in double:
+ * whichever thread ran a centre, the sums are the same bits). */
+static void offsets_centres(const float *xyz, const float *cx, const float *cy,
+                            const float *cz, const int32_t *nb, int64_t K, int64_t c0,
+                            int64_t c1, float *vx, float *part) {
+    for (int64_t c = c0; c < c1; ++c) {
+        const float qx = cx[c], qy = cy[c], qz = cz[c];
+        const int32_t *nr = nb + c * K;
+        float *v = vx + c * K * 3;
+        int64_t t = 0;
+#if defined(PGN_AVX2) || defined(__AVX512F__)
+        /* 4 floats in, 4 out per neighbour: the 4th is the next point's x (xyz has 4
+         * floats of slack), overwritten by the next store; not for the last neighbour,
+         * whose 4th float would land in the next centre's row, which the other thread
+         * of a lone cloud may have written already */
+        const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
+        for (; t + 1 < K; ++t)
+            _mm_storeu_ps(v + t * 3, _mm_sub_ps(_mm_loadu_ps(xyz + (int64_t)nr[t] * 3), q4));
+#endif
+        for (; t < K; ++t) {
+            const float *pj = xyz + (int64_t)nr[t] * 3;
+            v[t * 3] = pj[0] - qx; v[t * 3 + 1] = pj[1] - qy; v[t * 3 + 2] = pj[2] - qz;
+        }
+        float a1 = 0.0f, a2 = 0.0f;
+#pragma omp simd reduction(+:a1, a2)
+        for (int64_t u = 0; u < K * 3; ++u) { a1 += v[u]; a2 += v[u] * v[u]; }
+        part[2 * c] = a1;
+        part[2 * c + 1] = a2;
+    }
+}
+
+/* The std pass's centres [c0, c1): their offset rows scaled by rx first (when set). */
+static void std_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
+    if (j->vx_out) {
+        float *v = j->vx_out + c0 * j->K * 3;
+        const float rx = j->rx;
+#pragma omp simd
+        for (int64_t u = 0; u < (c1 - c0) * j->K * 3; ++u) v[u] *= rx;
+    }
+    for (int64_t c = c0; c < c1; ++c)
+        std_centre(j->feat, j->Dp, j->nb + c * j->K, j->K, j->feat + j->cidx[c] * j->Dp,
+                   j->mx[tid], j->sm[tid], j->part + 2 * c, j->part + 2 * c + 1);
+}
+
+void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
+    agg_job *j = job;
+    const int64_t c0 = j->S * chunk / j->nchunks, c1 = j->S * (chunk + 1) / j->nchunks;
+    if (c1 <= c0) return;
+    if (j->knn) {
+        knn_chunk(j, tid, c0, c1);
+        return;
+    }
+    if (j->offs) {
+        offsets_centres(j->xyz, j->qx, j->qy, j->qz, j->nb, j->K, c0, c1, j->vx_out, j->part);
+        return;
+    }
+    if (j->stdp) {
+        std_centres(j, tid, c0, c1);
+        return;
+    }
+    const int64_t *cidx = j->cidx + c0;
+    const int32_t *nb = j->nb + c0 * j->K;
+    const float *vx = j->vx + c0 * j->K * 3;
+    float *out = j->out + c0 * j->D2p;
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
+    if (j->lanes) {  /* stage 1 with neighbours in the lanes */
+        pgn_aggregate_lanes(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes, out,
+                            j->lscr[tid]);
+        return;
+    }
+#endif
+#if defined(__AVX512F__) && !defined(PGN_NO_D32)
+    if (j->d32) {
+        pgn_aggregate_d32_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs, j->m1,
+                             j->m2, j->sc, out, j->mx[tid]);
+        return;
+    }
+#endif
+#if defined(PGN_AVX2) && !defined(PGN_NO_D32)
+    if (j->d18) {
+        pgn_aggregate_d18_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cents,
+                               j->sc, out, j->mx[tid]);
+        return;
+    }
+    if (j->d32) {
+        pgn_aggregate_d32_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs,
+                               j->lane_axis, j->sc, out, j->mx[tid]);
+        return;
+    }
+#endif
+#if defined(PGN_AVX2) && !defined(PGN_NO_SEP256)
+    if (j->use_fx) {  /* G, RV, G2, SRC in the pe buffers, which this path does not use */
+        pgn_aggregate_sep_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
+                               j->sm[tid], j->pe[tid], j->pe[tid] + j->PS, j->pe[tid] + 3 * j->PS,
+                               (int32_t *)(j->pe[tid] + 2 * j->PS), j->pe[tid] + 4 * j->PS,
+                               j->pe[tid] + 5 * j->PS, &j->fx[tid]);
+        return;
+    }
+#endif
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
+    if (j->use_fx) {
+        pgn_aggregate_sep_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
+                                 j->sm[tid], j->pe[tid], j->pe[tid] + j->PS,
+                                 j->pe[tid] + 2 * j->PS, j->pe[tid] + 3 * j->PS, &j->fx[tid]);
+        return;
+    }
+#endif
+    pgn_stage_aggregate(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cc, j->ax, j->q, out,
+                    j->pe[tid], j->PS, j->mx[tid], j->sm[tid], j->use_fx ? &j->fx[tid] : NULL);
+}

@@ -1,0 +1,76 @@
+/* The encoder's steps over a range of a stage's centres (pgn_phases.c): kNN, coordinate
+ * offsets, the feature-offset std's partials and the aggregation, as one job type that
+ * pgn_encode.c fills and runs whole, or, for a lone cloud, cut into chunks shared with the
+ * helper thread (pgn_lone.c).
+ */
+#ifndef PGN_PHASES_H
+#define PGN_PHASES_H
+
+#include "pgn_common.h"
+
+/* geometry (pgn_geom.c, pgn_knn.c: built without fast-math) */
+void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
+             int64_t m, int64_t *idx, float *min_d);
+void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const float *cx,
+             const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
+             uint64_t *keys, float guess);
+float pgn_knn_guess(const float *x, const float *y, const float *z, int64_t n, int64_t k);
+
+/* A lone cloud on two threads: the caller and one helper share each stage's
+ * aggregation by chunks of centres, claimed from an atomic counter. Every centre's
+ * result depends on that centre only, so the split never changes a bit. The caller
+ * works through the chunks itself and waits only for chunks the helper has claimed:
+ * a helper that is not scheduled in time costs nothing but its wake-up. */
+typedef struct agg_job {
+    /* kNN job (knn = 1): the stage's points (px, py, pz: n each) and centres (qx, qy, qz),
+     * each thread with its own distance / key scratch and a private last row (below) */
+    int knn;
+    /* offsets job (offs = 1): the centres' normalised-offset rows into vx_out and their
+     * per-centre sums of v and v^2 into part (2 S); xyz: the stage's points (AoS) */
+    int offs;
+    const float *xyz;
+    float *vx_out;
+    /* std job (stdp = 1): per-centre partials of the feature-offset std into part (2 S),
+     * after scaling the centres' offset rows (vx_out, if set) by rx */
+    int stdp;
+    float rx;
+    int64_t Dp;
+    float *part;
+    const float *px, *py, *pz, *qx, *qy, *qz;
+    int64_t n;
+    float guess;          /* pgn_knn_guess of the points: the same for every chunk */
+    int32_t *nb_out;
+    float *dist[2];
+    uint64_t *keys[2];
+    int32_t *tail[2];
+    const float *feat;
+    int64_t D, S, K, D2p, PS, nchunks;
+    const int64_t *cidx;
+    const int32_t *nb;
+    const float *vx, *cc;
+    const int32_t *ax;
+    float r, q;
+    float *out;
+    sep_t fx[2];          /* per thread: its own A / E scratch */
+    int use_fx, d32;
+    float *pe[2], *mx[2], *sm[2];
+    const lanes_t *lanes;  /* stage 1 with neighbours in the lanes (SIMD builds), else NULL */
+    float *lscr[2];        /* its scratch, per thread */
+#if defined(__AVX512F__)
+    const float *ccs;
+    const __mmask16 *m1, *m2;
+    float sc;
+#elif defined(PGN_AVX2)
+    const float *ccs;
+    const int32_t *lane_axis;
+    float sc;
+    const float *cents;   /* this stage's centres of one axis (d18) */
+    int d18;
+#endif
+} agg_job;
+
+/* Chunk `chunk` (of job->nchunks) of an agg_job on thread tid: centres
+ * [S chunk / nchunks, S (chunk + 1) / nchunks). The lone runtime's chunk function. */
+void pgn_phase_chunk(void *job, int tid, int64_t chunk);
+
+#endif
