@@ -139,8 +139,9 @@ class Recognizer:
         self.encoder.warmup()
         cloud = np.random.default_rng(0).normal(size=(2000, 3)).astype(np.float32)
         self.classify_clouds([cloud])
-        # a sparse cloud too: filling it up (upsample 'midpoint') imports scipy's k-d tree,
-        # ~0.4 s the first time, which must not land on the first real scan
+        # a sparse cloud too: filling it up (upsample 'midpoint') has first-call costs of its
+        # own (without the compiled kernels its numpy form), which must not land on the
+        # first real scan
         self.classify_clouds([cloud[:300]])
         return time.perf_counter() - t0
 

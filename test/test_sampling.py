@@ -267,6 +267,50 @@ def test_compiled_prepare_matches_its_numpy_forms(monkeypatch: pytest.MonkeyPatc
                                   got[0][1])
 
 
+def test_compiled_canonical_order_and_neighbours_match_their_numpy_forms() -> None:
+    # canonical_order: a radix sort against np.lexsort (ties and -0 against +0 keep their
+    # input order); midpoint_neighbours: the float kNN then the float64 order against the
+    # numpy form (float64 input takes it), with exact ties (grid, duplicates), near ties
+    # (the fallback over every point), distances too small for float and large coordinates
+    from point_gn_ros.core import sampling
+    if sampling._compiled_prepare() is None:
+        pytest.skip('compiled kernels unavailable: both run their numpy forms')
+    rng = np.random.default_rng(21)
+    for i in range(40):
+        n = int(rng.integers(1, 1400))
+        x = rng.normal(size=(n, 3)).astype(np.float32)
+        if i % 4 == 1:
+            x = np.round(x * 2) / 2
+        elif i % 4 == 2:
+            x[n // 2:] = x[:n - n // 2]
+        elif i % 4 == 3:
+            x[rng.random(x.shape) < 0.4] = 0.0
+            x[rng.random(x.shape) < 0.4] = -0.0
+        x = np.ascontiguousarray(x, dtype=np.float32)
+        np.testing.assert_array_equal(sampling.canonical_order(x),
+                                      np.lexsort((x[:, 2], x[:, 1], x[:, 0])), err_msg=str(i))
+    g = np.arange(6, dtype=np.float32)
+    grid = np.stack(np.meshgrid(g, g, g), -1).reshape(-1, 3)         # many exact ties
+    near = grid + rng.normal(size=grid.shape).astype(np.float32) * 1e-7 * grid.max()
+    clouds = [grid, near, np.concatenate([grid[:80], grid[:80]]),
+              rng.normal(size=(300, 3)).astype(np.float32) * 1e-21,  # float squares underflow
+              rng.normal(size=(300, 3)).astype(np.float32) * 1e17,
+              rng.normal(size=(2, 3)).astype(np.float32)]
+    # a point amid a circle: float distances tie where float64 ones do not (the fallback)
+    t = rng.uniform(0, 2 * np.pi, 400)
+    ring = np.concatenate([[[0.0, 0.0, 0.0]], np.c_[np.cos(t), np.sin(t), np.zeros(400)]])
+    clouds += [ring.astype(np.float32)]
+    clouds += [rng.normal(size=(n, 3)).astype(np.float32) for n in (17, 340, 1000)]
+    for c in clouds:
+        c = np.ascontiguousarray(c[sampling.canonical_order(c)], dtype=np.float32)
+        for k in sorted({1, 2, 5, len(c) - 1}):
+            if 1 <= k < len(c):
+                np.testing.assert_array_equal(sampling.midpoint_neighbours(c, k),
+                                              sampling.midpoint_neighbours(c.astype(np.float64),
+                                                                           k),
+                                              err_msg=f'{len(c)} points, k {k}')
+
+
 @pytest.mark.parametrize('n_in', [2, 3, 16, 340, 1000, 1023])
 def test_midpoint_fill_keeps_every_point_and_adds_midpoints_of_near_neighbours(n_in: int
                                                                                ) -> None:

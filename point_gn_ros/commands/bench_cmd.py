@@ -163,7 +163,7 @@ def resample_rows(quick: bool, repeats: int) -> list[Row]:
     # a single-view scan's typical size (issue 9's protocol), filled up to 1024
     scan = rng.normal(0, 1, (340, 3)).astype(np.float32)
     for upsample in ('repeat', 'midpoint'):
-        prepare(scan, upsample=upsample)   # warm: 'midpoint' imports scipy's k-d tree once
+        prepare(scan, upsample=upsample)   # warm: first-call costs stay out of the timing
         t = _median_time(lambda u=upsample: prepare(scan, upsample=u), repeats)
         rows.append(dict(section='resample', what='prepare() 340 points -> 1024',
                          value=t * 1e3, unit='ms', note=f'upsample {upsample}'))

@@ -47,8 +47,41 @@ def fps_indices(xyz: np.ndarray, m: int) -> np.ndarray:
 
 
 def canonical_order(xyz: np.ndarray) -> np.ndarray:
-    """Indices sorting points by (x, y, z): (N, 3) -> (N,) int64, the same for any input order."""
+    """Indices sorting points by (x, y, z): (N, 3) -> (N,) int64, the same for any input order.
+
+    Ties (and -0 against +0) keep their input order, as np.lexsort's, which is the reference;
+    with the compiled kernels a radix sort (pgn_prepare.c) gives the same indices, ~5x faster.
+    """
+    lib = _compiled_prepare() if xyz.dtype == np.float32 and xyz.flags.c_contiguous else None
+    if lib is not None:
+        idx = np.empty(xyz.shape[0], dtype=np.int64)
+        if lib.pgn_canonical_order(xyz.ctypes.data, xyz.shape[0], idx.ctypes.data) == 0:
+            return idx
     return np.lexsort((xyz[:, 2], xyz[:, 1], xyz[:, 0]))
+
+
+def midpoint_neighbours(xyz: np.ndarray, k: int) -> np.ndarray:
+    """Each point's k nearest other points: (N, 3) float32, 1 <= k < N -> (N, k) int64.
+
+    Row i: the k + 1 nearest points by (squared distance in float64, index), nearest first,
+    without the first (point i itself, or an exact copy of it). Compiled with the kernels
+    (pgn_prepare.c: the float kNN, then the float64 order); this numpy form, O(N^2) in
+    blocks of rows, is its reference and fallback.
+    """
+    n = xyz.shape[0]
+    lib = _compiled_prepare() if xyz.dtype == np.float32 and xyz.flags.c_contiguous else None
+    if lib is not None and float(np.abs(xyz).max()) < 1e18:  # float squares stay finite
+        nb = np.empty((n, k), dtype=np.int32)
+        if lib.pgn_midpoint_neighbours(xyz.ctypes.data, n, k, nb.ctypes.data) == 0:
+            return nb.astype(np.int64)
+    x = xyz.astype(np.float64)
+    out = np.empty((n, k), dtype=np.int64)
+    for s in range(0, n, 256):
+        d = x[s:s + 256, None, :] - x[None, :, :]
+        d2 = (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
+        order = np.lexsort((np.broadcast_to(np.arange(n), d2.shape), d2), axis=-1)
+        out[s:s + 256] = order[:, 1:k + 1]
+    return out
 
 
 def hashed_subset(xyz: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
@@ -87,12 +120,9 @@ def midpoint_fill(xyz: np.ndarray, n: int) -> np.ndarray:
     count = len(xyz)
     if count >= n or count < 2:
         return xyz[np.arange(n) % count]
-    from scipy.spatial import cKDTree
     rounds = -(-(n - count) // count)
     k = min(rounds, count - 1)
-    # k + 1 nearest, the first at distance 0: the point itself, or an exact copy of it,
-    # which has the same coordinates, so dropping the first column drops "itself" either way
-    nb = cKDTree(xyz).query(xyz, k=k + 1)[1].reshape(count, k + 1)[:, 1:]
+    nb = midpoint_neighbours(xyz, k)
     parts, missing = [xyz], n - count
     for r in range(rounds):
         rows = np.arange(count) if missing >= count else np.sort(hashed_subset(xyz, missing))

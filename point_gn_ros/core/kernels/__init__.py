@@ -252,6 +252,10 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_normalize.argtypes = [p, i64, p]
     lib.pgn_canonical_yaw.restype = None
     lib.pgn_canonical_yaw.argtypes = [p, i64, p, p, p]
+    lib.pgn_canonical_order.restype = ctypes.c_int
+    lib.pgn_canonical_order.argtypes = [p, i64, p]
+    lib.pgn_midpoint_neighbours.restype = ctypes.c_int
+    lib.pgn_midpoint_neighbours.argtypes = [p, i64, i64, p]
     lib.pgn_project_f32.restype = None
     lib.pgn_project_f32.argtypes = [p, i64, i64, p, i64, p]
     f64 = ctypes.c_double

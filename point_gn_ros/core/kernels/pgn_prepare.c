@@ -104,3 +104,131 @@ void pgn_canonical_yaw(const float *xyz, int64_t n, float *out, double *dx, doub
         out[3 * i + 2] = xyz[3 * i + 2];
     }
 }
+
+/* ---- sampling.canonical_order and midpoint_fill's neighbours ---- */
+
+#include <stdlib.h>
+#include <string.h>
+
+void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const float *cx,
+             const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
+             uint64_t *keys, float guess);
+
+/* A float's bits as an unsigned key that orders like the value; -0 as +0 (they compare
+ * equal, so a stable sort keeps their order). */
+static inline uint32_t order_key(float f) {
+    f = f + 0.0f;  /* -0 + 0 = +0 */
+    uint32_t u;
+    memcpy(&u, &f, 4);
+    return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+}
+
+/* idx (n,) int64 = numpy's lexsort((z, y, x)) of xyz (n, 3) float32, finite: by x, then y,
+ * then z, ties in input order. Stable LSD radix sort, 8 bits a pass (passes whose digit is
+ * the same for every point are skipped). Returns 0, or -1 when out of memory. */
+int pgn_canonical_order(const float *xyz, int64_t n, int64_t *idx) {
+    uint32_t *key = malloc(sizeof(uint32_t) * (size_t)(n > 0 ? n : 1));
+    int64_t *tmp = malloc(sizeof(int64_t) * (size_t)(n > 0 ? n : 1));
+    if (!key || !tmp) {
+        free(key);
+        free(tmp);
+        return -1;
+    }
+    for (int64_t i = 0; i < n; ++i) idx[i] = i;
+    for (int a = 2; a >= 0; --a) {  /* least significant key first */
+        for (int64_t i = 0; i < n; ++i) key[i] = order_key(xyz[3 * i + a]);
+        for (int shift = 0; shift < 32; shift += 8) {
+            int64_t cnt[257] = {0};
+            for (int64_t i = 0; i < n; ++i) cnt[((key[idx[i]] >> shift) & 0xFFu) + 1]++;
+            int same = 0;
+            for (int b = 1; b <= 256; ++b) same |= cnt[b] == n;
+            if (same) continue;
+            for (int b = 0; b < 256; ++b) cnt[b + 1] += cnt[b];
+            for (int64_t i = 0; i < n; ++i) tmp[cnt[(key[idx[i]] >> shift) & 0xFFu]++] = idx[i];
+            memcpy(idx, tmp, sizeof(int64_t) * (size_t)n);
+        }
+    }
+    free(key);
+    free(tmp);
+    return 0;
+}
+
+/* (dx^2 + dy^2) + dz^2 in double from float32 points: each square is exact */
+static inline double dist2_d(const float *p, const float *q) {
+    const double dx = (double)p[0] - (double)q[0], dy = (double)p[1] - (double)q[1];
+    const double dz = (double)p[2] - (double)q[2];
+    return (dx * dx + dy * dy) + dz * dz;
+}
+
+/* midpoint_fill's neighbours: for each of the n points of xyz (n, 3) float32, finite and
+ * below 1e18 in magnitude, its k + 1 nearest points by (squared distance in double, index)
+ * without the first (the point itself, or an exact copy of it) -> nb (n, k) int32, nearest
+ * first; 1 <= k < n. The float kNN (pgn_knn) gives k + 2 candidates; float distances are
+ * within 1e-6 of the double ones, so while the (k + 1)-th double distance stays below the
+ * candidates' largest float distance by that margin, no other point can enter, and the
+ * candidates' double order is exact. Otherwise (near ties) the row takes every point within
+ * the margin. Returns 0, or -1 when out of memory. */
+int pgn_midpoint_neighbours(const float *xyz, int64_t n, int64_t k, int32_t *nb) {
+    const int64_t k1 = k + 1, k2 = k + 2 < n ? k + 2 : n;
+    float *soa = malloc(sizeof(float) * (size_t)(4 * n));
+    uint64_t *keys = malloc(sizeof(uint64_t) * (size_t)(2 * n + 32));
+    int32_t *cand = malloc(sizeof(int32_t) * (size_t)(n * k2 + 16));
+    int64_t *ck = malloc(sizeof(int64_t) * (size_t)n);
+    double *cd = malloc(sizeof(double) * (size_t)n);
+    if (!soa || !keys || !cand || !ck || !cd) {
+        free(soa);
+        free(keys);
+        free(cand);
+        free(ck);
+        free(cd);
+        return -1;
+    }
+    float *x = soa, *y = soa + n, *z = soa + 2 * n, *dist = soa + 3 * n;
+    for (int64_t i = 0; i < n; ++i) {
+        x[i] = xyz[3 * i];
+        y[i] = xyz[3 * i + 1];
+        z[i] = xyz[3 * i + 2];
+    }
+    pgn_knn(x, y, z, n, x, y, z, n, k2, cand, dist, keys, 0.0f);
+    for (int64_t i = 0; i < n; ++i) {
+        const float *p = xyz + 3 * i;
+        float fmax = 0.0f;
+        int64_t m = k2;
+        for (int64_t j = 0; j < k2; ++j) {
+            const float *q = xyz + 3 * (int64_t)cand[i * k2 + j];
+            const float dx = p[0] - q[0], dy = p[1] - q[1], dz = p[2] - q[2];
+            const float d = (dx * dx + dy * dy) + dz * dz;
+            fmax = d > fmax ? d : fmax;
+            ck[j] = cand[i * k2 + j];
+            cd[j] = dist2_d(p, q);
+        }
+        for (int pass = 0; pass < 2; ++pass) {
+            /* the k + 1 smallest by (double distance, index), in order: selection */
+            for (int64_t t = 0; t < k1 && t < m; ++t) {
+                int64_t b = t;
+                for (int64_t u = t + 1; u < m; ++u)
+                    if (cd[u] < cd[b] || (cd[u] == cd[b] && ck[u] < ck[b])) b = u;
+                const double td = cd[t];
+                const int64_t tk = ck[t];
+                cd[t] = cd[b]; ck[t] = ck[b];
+                cd[b] = td; ck[b] = tk;
+            }
+            /* points outside the candidates are at least fmax away in float */
+            if (pass || k2 == n || (fmax > 1e-30f && cd[k1 - 1] * (1.0 + 4e-6) < (double)fmax))
+                break;
+            const double lim = cd[k1 - 1] * (1.0 + 4e-6) + 1e-300;
+            m = 0;
+            for (int64_t j = 0; j < n; ++j) {  /* near ties: every point within the margin */
+                const double d = dist2_d(p, xyz + 3 * j);
+                if (d <= lim) { cd[m] = d; ck[m++] = j; }
+            }
+        }
+        for (int64_t t = 1; t < k1; ++t) nb[i * k + t - 1] = (int32_t)ck[t];
+    }
+    free(soa);
+    free(keys);
+    free(cand);
+    free(ck);
+    free(cd);
+    return 0;
+}
