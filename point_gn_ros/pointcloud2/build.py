@@ -7,7 +7,7 @@ per-byte checks.
 from __future__ import annotations
 
 import array
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -54,8 +54,6 @@ def make_pointcloud2(header: Any, arrays: Mapping[str, np.ndarray], *,
     ``frame_id`` overrides its frame. ``height`` > 1 makes an organized cloud of width
     N / height. ``is_dense`` defaults to "x/y/z all finite".
     """
-    from sensor_msgs.msg import PointCloud2, PointField
-
     cols: dict[str, np.ndarray] = {}
     n = None
     for name, values in arrays.items():
@@ -71,36 +69,50 @@ def make_pointcloud2(header: Any, arrays: Mapping[str, np.ndarray], *,
     if height < 1 or n % height:
         raise ValueError(f'{n} points cannot form an organized cloud of height {height}')
 
-    offsets, formats, pfields = [], [], []
+    offsets, formats, spec = [], [], []
     offset = 0
     for name, arr in cols.items():
         native = arr.dtype.newbyteorder('=')
         offsets.append(offset)
         formats.append(native.newbyteorder('<'))
-        pfields.append(PointField(name=name, offset=offset, datatype=_DATATYPE_OF[native],
-                                  count=1))
+        spec.append((name, offset, _DATATYPE_OF[native]))
         offset += native.itemsize
     point_step = offset
     rec = np.empty(n, dtype=np.dtype({'names': list(cols), 'formats': formats,
                                       'offsets': offsets, 'itemsize': point_step}))
     for name, arr in cols.items():
         rec[name] = arr
-    data = array.array('B')
-    data.frombytes(rec.view(np.uint8) if n and point_step else b'')  # one copy, no loop
-
     if is_dense is None:
         is_dense = all(bool(np.isfinite(cols[a]).all()) for a in _XYZ
                        if a in cols and cols[a].dtype.kind == 'f')
+    return assemble_pointcloud2(header, rec, spec, point_step, frame_id=frame_id,
+                                height=height, is_dense=bool(is_dense))
+
+
+def assemble_pointcloud2(header: Any, rec: np.ndarray, spec: Sequence[tuple[str, int, int]],
+                         point_step: int, *, frame_id: str | None = None, height: int = 1,
+                         is_dense: bool = True) -> Any:
+    """The PointCloud2 of packed little-endian records.
+
+    rec: (N,) records of point_step bytes; spec: (name, offset, PointField datatype) per
+    field, count 1. The caller has checked the layout (make_pointcloud2, make_classifications).
+    """
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    n = rec.shape[0]
+    data = array.array('B')
+    data.frombytes(rec.view(np.uint8) if n and point_step else b'')  # one copy, no loop
     msg = PointCloud2()
     msg.header = _header(header, frame_id)
     msg.height = height if n else 1
     msg.width = n // height if n else 0
-    msg.fields = pfields
+    msg.fields = [PointField(name=name, offset=off, datatype=dt, count=1)
+                  for name, off, dt in spec]
     msg.is_bigendian = False
     msg.point_step = point_step
     msg.row_step = point_step * msg.width
     msg.data = data
-    msg.is_dense = bool(is_dense)
+    msg.is_dense = is_dense
     return msg
 
 

@@ -6,13 +6,15 @@ Field layout in ``classification_fields``; ``make_classifications`` builds the m
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 
 from point_gn_ros.errors import DecodeError
-from point_gn_ros.pointcloud2.build import make_pointcloud2
-from point_gn_ros.pointcloud2.decode import DEFAULT_MAX_POINTS, _column, _structured_view
+from point_gn_ros.pointcloud2.build import assemble_pointcloud2
+from point_gn_ros.pointcloud2.decode import (_DATATYPE_OF, DEFAULT_MAX_POINTS, _column,
+                                             _structured_view)
 
 
 def classification_fields(k: int) -> list[tuple[str, np.dtype]]:
@@ -24,12 +26,33 @@ def classification_fields(k: int) -> list[tuple[str, np.dtype]]:
             + [('segment_id', i32), ('topic_index', i32)])
 
 
-def _per_object(name: str, values: Any, m: int, dtype: type) -> np.ndarray:
+@lru_cache(maxsize=16)
+def _layout(k: int) -> tuple[np.dtype, tuple[tuple[str, int, int], ...], int]:
+    """The packed records of classification_fields(k): (record dtype, PointField spec, step).
+
+    The dtype holds the top-k ids and scores as one (k,) sub-array each, so that one
+    assignment fills each group; the bytes are those of the k + 7 single fields.
+    """
+    spec, offset = [], 0
+    for name, dt in classification_fields(k):
+        spec.append((name, offset, _DATATYPE_OF[dt]))
+        offset += dt.itemsize
+    f4, i4 = '<f4', '<i4'
+    rec = np.dtype({'names': ['xyz', 'class_id', 'score', 'topk_id', 'topk_score', 'segment_id',
+                              'topic_index'],
+                    'formats': [(f4, (3,)), i4, f4, (i4, (k,)), (f4, (k,)), i4, i4],
+                    'offsets': [0, 12, 16, 20, 20 + 4 * k, 20 + 8 * k, 24 + 8 * k],
+                    'itemsize': offset})
+    return rec, tuple(spec), offset
+
+
+def _per_object(name: str, values: Any, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+    """The values (of shape, or one scalar for every object) as dtype; integers must fit."""
     arr = np.asarray(values)
     if arr.ndim == 0:  # scalar: same value for every object (e.g. segment_id=-1)
-        arr = np.full(m, arr)
-    if arr.shape != (m,):
-        raise ValueError(f'{name} must have shape ({m},), got {arr.shape}')
+        arr = np.full(shape, arr)
+    if arr.shape != shape:
+        raise ValueError(f'{name} must have shape {shape}, got {arr.shape}')
     if arr.dtype.kind in 'iu' and np.dtype(dtype).kind == 'i' and arr.size:
         info = np.iinfo(dtype)
         if arr.min() < info.min or arr.max() > info.max:
@@ -47,7 +70,8 @@ def make_classifications(header: Any, centroids: np.ndarray, class_id: np.ndarra
     topk_ids (M, k) int; topk_scores (M, k) float; segment_id (M,) int or scalar (-1 when the
     source message was one object); topic_index (M,) int or scalar. M may be 0.
     Fields (see classification_fields): x, y, z, class_id, score, topk_id_0..k-1,
-    topk_score_0..k-1, segment_id, topic_index.
+    topk_score_0..k-1, segment_id, topic_index. Built straight into the packed records
+    (one assignment a column group): it runs for every answer on the node's worker.
     """
     centroids = np.asarray(centroids)
     if centroids.ndim != 2 or centroids.shape[1] != 3:
@@ -61,19 +85,17 @@ def make_classifications(header: Any, centroids: np.ndarray, class_id: np.ndarra
         raise ValueError(f'topk_scores shape {topk_scores.shape} != topk_ids shape '
                          f'{topk_ids.shape}')
     k = topk_ids.shape[1]
-    arrays: dict[str, np.ndarray] = {
-        'x': centroids[:, 0].astype(np.float32), 'y': centroids[:, 1].astype(np.float32),
-        'z': centroids[:, 2].astype(np.float32),
-        'class_id': _per_object('class_id', class_id, m, np.int32),
-        'score': _per_object('score', score, m, np.float32),
-    }
-    for i in range(k):
-        arrays[f'topk_id_{i}'] = _per_object(f'topk_ids[:, {i}]', topk_ids[:, i], m, np.int32)
-    for i in range(k):
-        arrays[f'topk_score_{i}'] = topk_scores[:, i].astype(np.float32)
-    arrays['segment_id'] = _per_object('segment_id', segment_id, m, np.int32)
-    arrays['topic_index'] = _per_object('topic_index', topic_index, m, np.int32)
-    return make_pointcloud2(header, arrays, frame_id=frame_id)
+    dtype, spec, point_step = _layout(k)
+    rec = np.empty(m, dtype=dtype)
+    rec['xyz'] = centroids
+    rec['class_id'] = _per_object('class_id', class_id, (m,), np.int32)
+    rec['score'] = _per_object('score', score, (m,), np.float32)
+    rec['topk_id'] = _per_object('topk_ids', topk_ids, (m, k), np.int32)
+    rec['topk_score'] = topk_scores
+    rec['segment_id'] = _per_object('segment_id', segment_id, (m,), np.int32)
+    rec['topic_index'] = _per_object('topic_index', topic_index, (m,), np.int32)
+    return assemble_pointcloud2(header, rec, spec, point_step, frame_id=frame_id,
+                                is_dense=bool(np.isfinite(rec['xyz']).all()))
 
 
 def decode_classifications(msg: Any, *, max_points: int = DEFAULT_MAX_POINTS
