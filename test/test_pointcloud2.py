@@ -515,6 +515,22 @@ def test_classifications_round_trip(m: int, k: int) -> None:
     for key in ('class_id', 'segment_id', 'topic_index'):
         assert out[key].dtype == np.int32 and out[key].shape == (m,)
         np.testing.assert_array_equal(out[key], args[key])
+    # the packed-record fast path gives the generic builder's message, byte for byte
+    cols = {'x': args['centroids'][:, 0].astype(np.float32),
+            'y': args['centroids'][:, 1].astype(np.float32),
+            'z': args['centroids'][:, 2].astype(np.float32),
+            'class_id': args['class_id'].astype(np.int32),
+            'score': args['score'].astype(np.float32)}
+    cols.update({f'topk_id_{i}': args['topk_ids'][:, i].astype(np.int32) for i in range(k)})
+    cols.update({f'topk_score_{i}': args['topk_scores'][:, i] for i in range(k)})
+    cols.update(segment_id=args['segment_id'].astype(np.int32),
+                topic_index=args['topic_index'].astype(np.int32))
+    generic = make_pointcloud2(None, cols, frame_id='map')
+    assert bytes(msg.data) == bytes(generic.data) and msg.is_dense == generic.is_dense
+    assert [(f.name, f.offset, f.datatype, f.count) for f in msg.fields] == [
+        (f.name, f.offset, f.datatype, f.count) for f in generic.fields]
+    assert (msg.point_step, msg.row_step, msg.width, msg.height) == (
+        generic.point_step, generic.row_step, generic.width, generic.height)
 
 
 def test_classifications_scalar_broadcast_and_package_reexport() -> None:
