@@ -23,11 +23,9 @@ int pgn_simd_width(void) {
 }
 
 #ifdef PGN_PROFILE
-#include <time.h>
 double pgn_prof[16];  /* per-phase thread CPU seconds; slots: bench_cmd.PROFILE_SLOTS */
-static double now(void) { struct timespec ts; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts); return ts.tv_sec + 1e-9 * ts.tv_nsec; }
-#define TIC(i) double _t##i = now()
-#define TOC(i, slot) pgn_prof[slot] += now() - _t##i
+#define TIC(i) double _t##i = pgn_now()
+#define TOC(i, slot) pgn_prof[slot] += pgn_now() - _t##i
 #else
 #define TIC(i)
 #define TOC(i, slot)
@@ -185,15 +183,19 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         }
         TOC(2, 1);
         TIC(3);
-        /* offsets and their unbiased std: each centre's rows and float sums of v and v^2
-         * (a lone cloud shares the centres with the helper), added here in double in
-         * centre order; the std pass below scales the rows by 1 / std */
+        /* offsets and the feature-offset std's partials in one step: each centre's offset
+         * rows, float sums of v and v^2 and of the feature offsets e and e^2 (a lone
+         * cloud shares the centres with the helper), added here in double in centre
+         * order; the aggregation's chunks scale their own offset rows by 1 / std */
         const int64_t nch = par ? (S < 16 ? S : 16) : 1;
         agg_job oj;
         memset(&oj, 0, sizeof(oj));
         oj.offs = 1;
         oj.xyz = xyz; oj.qx = cx; oj.qy = cy; oj.qz = cz; oj.nb = nb; oj.S = S; oj.K = K;
         oj.vx_out = vx; oj.part = oparts; oj.nchunks = nch;
+        oj.stdp = 1;
+        oj.feat = feat; oj.Dp = Dp; oj.cidx = cidx; oj.fpart = parts;
+        oj.mx[0] = mx; oj.sm[0] = sm; oj.mx[1] = vec2; oj.sm[1] = vec2 ? vec2 + VS : NULL;
         pgn_par_run(par, pgn_phase_chunk, &oj, nch);
         double s1 = 0.0, s2 = 0.0;
         for (int64_t c = 0; c < S; ++c) { s1 += oparts[2 * c]; s2 += oparts[2 * c + 1]; }
@@ -201,27 +203,13 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         double vvar = (s2 - s1 * s1 / nvd) / (nvd - 1.0);
         if (vvar < 0.0) vvar = 0.0;
         const float rx = (float)(1.0 / (sqrt(vvar) + 1e-5));
-        TOC(3, 10);
-        TIC(7);
-        /* std of feature offsets: per-channel float partials over a centre's neighbours
-         * (4 rows a pass, no horizontal sum per row), reduced once per centre and added
-         * here in double in centre order */
-        agg_job sj;
-        memset(&sj, 0, sizeof(sj));
-        sj.stdp = 1;
-        sj.feat = feat; sj.Dp = Dp; sj.cidx = cidx; sj.nb = nb; sj.S = S; sj.K = K;
-        sj.vx_out = vx; sj.rx = rx;
-        sj.nchunks = nch;
-        sj.mx[0] = mx; sj.sm[0] = sm; sj.mx[1] = vec2; sj.sm[1] = vec2 ? vec2 + VS : NULL;
-        sj.part = parts;
-        pgn_par_run(par, pgn_phase_chunk, &sj, nch);
         double f1 = 0.0, f2 = 0.0;
         for (int64_t c = 0; c < S; ++c) { f1 += parts[2 * c]; f2 += parts[2 * c + 1]; }
         const double nf = (double)(S * K * D);
         double var = (f2 - f1 * f1 / nf) / (nf - 1.0);
         if (var < 0.0) var = 0.0;
         const float rf = (float)(1.0 / (sqrt(var) + 1e-5));
-        TOC(7, 7);
+        TOC(3, 10);
         TIC(4);
         /* per-channel centre and axis of the pe channels (padding lanes: ignored) */
         for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
@@ -263,6 +251,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         memset(&job, 0, sizeof(job));
         job.feat = feat; job.D = D; job.S = S; job.K = K; job.D2p = D2p; job.PS = PS;
         job.cidx = cidx; job.nb = nb; job.vx = vx; job.cc = cc; job.ax = ax; job.r = rf;
+        job.vx_scale = vx; job.rx = rx;
         job.q = q; job.out = nfeat;
         /* 16 chunks on two threads: a claimed chunk is short, so the caller never waits
          * long for a helper that was descheduled mid-chunk */
@@ -320,6 +309,18 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             job.lanes = &lanes;
             job.lscr[0] = lscr;
             job.lscr[1] = par ? lscr + LS : NULL;
+        }
+#endif
+#if defined(PGN_AVX2)
+        if (!job.lanes && (job.d32 || job.d18)) {
+            /* these kernels read a float or more past a centre's offset rows, into rows the
+             * other thread may be scaling: scaled in a step of their own first */
+            agg_job xj;
+            memset(&xj, 0, sizeof(xj));
+            xj.S = S; xj.K = K; xj.nchunks = job.nchunks;
+            xj.vx_scale = vx; xj.rx = rx; xj.scale_only = 1;
+            pgn_par_run(par, pgn_phase_chunk, &xj, xj.nchunks);
+            job.vx_scale = NULL;
         }
 #endif
         pgn_par_run(par, pgn_phase_chunk, &job, job.nchunks);

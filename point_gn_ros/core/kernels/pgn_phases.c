@@ -95,17 +95,19 @@ static void offsets_centres(const float *xyz, const float *cx, const float *cy,
     }
 }
 
-/* The std pass's centres [c0, c1): their offset rows scaled by rx first (when set). */
+/* The feature-offset std's partials of centres [c0, c1) into fpart. */
 static void std_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
-    if (j->vx_out) {
-        float *v = j->vx_out + c0 * j->K * 3;
-        const float rx = j->rx;
-#pragma omp simd
-        for (int64_t u = 0; u < (c1 - c0) * j->K * 3; ++u) v[u] *= rx;
-    }
+#ifdef PGN_PROFILE
+    const double t0 = pgn_now();
+#endif
     for (int64_t c = c0; c < c1; ++c)
         std_centre(j->feat, j->Dp, j->nb + c * j->K, j->K, j->feat + j->cidx[c] * j->Dp,
-                   j->mx[tid], j->sm[tid], j->part + 2 * c, j->part + 2 * c + 1);
+                   j->mx[tid], j->sm[tid], j->fpart + 2 * c, j->fpart + 2 * c + 1);
+#ifdef PGN_PROFILE
+    const double dt = pgn_now() - t0;  /* a phase of its own in the profile's table */
+    pgn_prof[7] += dt;
+    pgn_prof[10] -= dt;
+#endif
 }
 
 void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
@@ -118,11 +120,15 @@ void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
     }
     if (j->offs) {
         offsets_centres(j->xyz, j->qx, j->qy, j->qz, j->nb, j->K, c0, c1, j->vx_out, j->part);
+        if (j->stdp) std_centres(j, tid, c0, c1);
         return;
     }
-    if (j->stdp) {
-        std_centres(j, tid, c0, c1);
-        return;
+    if (j->vx_scale) {   /* these centres' offset rows, by 1 / std, just before their use */
+        float *v = j->vx_scale + c0 * j->K * 3;
+        const float rx = j->rx;
+#pragma omp simd
+        for (int64_t u = 0; u < (c1 - c0) * j->K * 3; ++u) v[u] *= rx;
+        if (j->scale_only) return;
     }
     const int64_t *cidx = j->cidx + c0;
     const int32_t *nb = j->nb + c0 * j->K;

@@ -8,6 +8,16 @@
 
 #include "pgn_common.h"
 
+#ifdef PGN_PROFILE
+#include <time.h>
+extern double pgn_prof[16];  /* per-phase thread CPU seconds (pgn_encode.c) */
+static inline double pgn_now(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+    return ts.tv_sec + 1e-9 * ts.tv_nsec;
+}
+#endif
+
 /* geometry (pgn_geom.c, pgn_knn.c: built without fast-math) */
 void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
              int64_t m, int64_t *idx, float *min_d);
@@ -25,17 +35,22 @@ typedef struct agg_job {
     /* kNN job (knn = 1): the stage's points (px, py, pz: n each) and centres (qx, qy, qz),
      * each thread with its own distance / key scratch and a private last row (below) */
     int knn;
-    /* offsets job (offs = 1): the centres' normalised-offset rows into vx_out and their
-     * per-centre sums of v and v^2 into part (2 S); xyz: the stage's points (AoS) */
+    /* offsets job (offs = 1): the centres' offset rows into vx_out and their per-centre
+     * sums of v and v^2 into part (2 S); xyz: the stage's points (AoS). With stdp = 1 also
+     * the per-centre partials of the feature-offset std into fpart (2 S): the same
+     * centres' rows, so one step instead of two */
     int offs;
     const float *xyz;
     float *vx_out;
-    /* std job (stdp = 1): per-centre partials of the feature-offset std into part (2 S),
-     * after scaling the centres' offset rows (vx_out, if set) by rx */
     int stdp;
-    float rx;
     int64_t Dp;
-    float *part;
+    float *part, *fpart;
+    /* aggregation: the centres' offset rows (vx_scale, the same buffer as vx) are scaled
+     * by rx = 1 / std first, by the chunk that aggregates them, when set; scale_only: a
+     * step that only scales them */
+    float *vx_scale;
+    float rx;
+    int scale_only;
     const float *px, *py, *pz, *qx, *qy, *qz;
     int64_t n;
     float guess;          /* pgn_knn_guess of the points: the same for every chunk */
