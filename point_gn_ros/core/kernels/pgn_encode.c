@@ -164,29 +164,11 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             cx[c] = x[cidx[c]]; cy[c] = y[cidx[c]]; cz[c] = z[cidx[c]];
             cxyz[c * 3] = cx[c]; cxyz[c * 3 + 1] = cy[c]; cxyz[c * 3 + 2] = cz[c];
         }
-        TIC(2);
-        if (par) {   /* a lone cloud: the centres' searches shared with the helper */
-            agg_job kj;
-            memset(&kj, 0, sizeof(kj));
-            kj.knn = 1;
-            kj.px = x; kj.py = y; kj.pz = z; kj.n = n;
-            kj.guess = pgn_knn_guess(x, y, z, n, K);
-            kj.qx = cx; kj.qy = cy; kj.qz = cz;
-            kj.S = S; kj.K = K; kj.nb_out = nb;
-            kj.nchunks = S < 16 ? S : 16;
-            kj.dist[0] = scratch; kj.dist[1] = scratch2;
-            kj.keys[0] = keys; kj.keys[1] = keys2;
-            kj.tail[0] = tails; kj.tail[1] = tails + K1 + 16;
-            pgn_par_run(par, pgn_phase_chunk, &kj, kj.nchunks);
-        } else {
-            pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys, 0.0f);
-        }
-        TOC(2, 1);
-        TIC(3);
         /* offsets and the feature-offset std's partials in one step: each centre's offset
-         * rows, float sums of v and v^2 and of the feature offsets e and e^2 (a lone
-         * cloud shares the centres with the helper), added here in double in centre
-         * order; the aggregation's chunks scale their own offset rows by 1 / std */
+         * rows, float sums of v and v^2 and of the feature offsets e and e^2, added below in
+         * double in centre order; the aggregation's chunks scale their own offset rows by
+         * 1 / std. A lone cloud's chunks take their centres' kNN rows first, in the same
+         * step, shared with the helper. */
         const int64_t nch = par ? (S < 16 ? S : 16) : 1;
         agg_job oj;
         memset(&oj, 0, sizeof(oj));
@@ -196,7 +178,22 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         oj.stdp = 1;
         oj.feat = feat; oj.Dp = Dp; oj.cidx = cidx; oj.fpart = parts;
         oj.mx[0] = mx; oj.sm[0] = sm; oj.mx[1] = vec2; oj.sm[1] = vec2 ? vec2 + VS : NULL;
-        pgn_par_run(par, pgn_phase_chunk, &oj, nch);
+        TIC(2);
+        if (par) {
+            oj.knn = 1;
+            oj.px = x; oj.py = y; oj.pz = z; oj.n = n;
+            oj.guess = pgn_knn_guess(x, y, z, n, K);
+            oj.nb_out = nb;
+            oj.dist[0] = scratch; oj.dist[1] = scratch2;
+            oj.keys[0] = keys; oj.keys[1] = keys2;
+            oj.tail[0] = tails; oj.tail[1] = tails + K1 + 16;
+            pgn_par_run(par, pgn_phase_chunk, &oj, nch);
+        } else {
+            pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys, 0.0f);
+        }
+        TOC(2, 1);
+        TIC(3);
+        if (!par) pgn_par_run(NULL, pgn_phase_chunk, &oj, nch);
         double s1 = 0.0, s2 = 0.0;
         for (int64_t c = 0; c < S; ++c) { s1 += oparts[2 * c]; s2 += oparts[2 * c + 1]; }
         const double nvd = (double)(S * K * 3);

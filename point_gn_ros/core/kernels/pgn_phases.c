@@ -116,7 +116,7 @@ void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
     if (c1 <= c0) return;
     if (j->knn) {
         knn_chunk(j, tid, c0, c1);
-        return;
+        if (!j->offs) return;   /* else these centres' offsets next (a lone cloud) */
     }
     if (j->offs) {
         offsets_centres(j->xyz, j->qx, j->qy, j->qz, j->nb, j->K, c0, c1, j->vx_out, j->part);
