@@ -110,7 +110,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     /* the helper's kNN scratch, and a private last row per thread (knn_chunk) */
     float *scratch2 = par ? xalloc(sizeof(float) * (size_t)N) : NULL;
     uint64_t *keys2 = par ? xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32)) : NULL;
-    int32_t *tails = par ? xalloc(sizeof(int32_t) * (size_t)(2 * (K1 + 16))) : NULL;
+    int32_t *tails = xalloc(sizeof(int32_t) * (size_t)(npar * (K1 + 16)));
     /* per-centre partial sums: feature offsets (parts), coordinate offsets (oparts) */
     float *parts = xalloc(sizeof(float) * (size_t)(2 * S1));
     float *oparts = xalloc(sizeof(float) * (size_t)(2 * S1));
@@ -133,8 +133,8 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 #endif
     if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
         || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE
-        || !parts || !oparts
-        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2 || !tails))) {
+        || !parts || !oparts || !tails
+        || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2))) {
         rc = -1;
         goto done;
     }
@@ -164,36 +164,28 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             cx[c] = x[cidx[c]]; cy[c] = y[cidx[c]]; cz[c] = z[cidx[c]];
             cxyz[c * 3] = cx[c]; cxyz[c * 3 + 1] = cy[c]; cxyz[c * 3 + 2] = cz[c];
         }
-        /* offsets and the feature-offset std's partials in one step: each centre's offset
-         * rows, float sums of v and v^2 and of the feature offsets e and e^2, added below in
-         * double in centre order; the aggregation's chunks scale their own offset rows by
-         * 1 / std. A lone cloud's chunks take their centres' kNN rows first, in the same
-         * step, shared with the helper. */
+        /* each chunk of centres: their kNN rows, then their offset rows and float sums of
+         * v and v^2 and of the feature offsets e and e^2 (added below in double in centre
+         * order), in one step that a lone cloud shares with the helper; the aggregation's
+         * chunks scale their own offset rows by 1 / std */
+        TIC(3);
         const int64_t nch = par ? (S < 16 ? S : 16) : 1;
         agg_job oj;
         memset(&oj, 0, sizeof(oj));
+        oj.knn = 1;
+        oj.px = x; oj.py = y; oj.pz = z; oj.n = n;
+        oj.guess = pgn_knn_guess(x, y, z, n, K);
+        oj.nb_out = nb;
+        oj.dist[0] = scratch; oj.dist[1] = scratch2;
+        oj.keys[0] = keys; oj.keys[1] = keys2;
+        oj.tail[0] = tails; oj.tail[1] = par ? tails + K1 + 16 : NULL;
         oj.offs = 1;
         oj.xyz = xyz; oj.qx = cx; oj.qy = cy; oj.qz = cz; oj.nb = nb; oj.S = S; oj.K = K;
         oj.vx_out = vx; oj.part = oparts; oj.nchunks = nch;
         oj.stdp = 1;
         oj.feat = feat; oj.Dp = Dp; oj.cidx = cidx; oj.fpart = parts;
         oj.mx[0] = mx; oj.sm[0] = sm; oj.mx[1] = vec2; oj.sm[1] = vec2 ? vec2 + VS : NULL;
-        TIC(2);
-        if (par) {
-            oj.knn = 1;
-            oj.px = x; oj.py = y; oj.pz = z; oj.n = n;
-            oj.guess = pgn_knn_guess(x, y, z, n, K);
-            oj.nb_out = nb;
-            oj.dist[0] = scratch; oj.dist[1] = scratch2;
-            oj.keys[0] = keys; oj.keys[1] = keys2;
-            oj.tail[0] = tails; oj.tail[1] = tails + K1 + 16;
-            pgn_par_run(par, pgn_phase_chunk, &oj, nch);
-        } else {
-            pgn_knn(x, y, z, n, cx, cy, cz, S, K, nb, scratch, keys, 0.0f);
-        }
-        TOC(2, 1);
-        TIC(3);
-        if (!par) pgn_par_run(NULL, pgn_phase_chunk, &oj, nch);
+        pgn_par_run(par, pgn_phase_chunk, &oj, nch);
         double s1 = 0.0, s2 = 0.0;
         for (int64_t c = 0; c < S; ++c) { s1 += oparts[2 * c]; s2 += oparts[2 * c + 1]; }
         const double nvd = (double)(S * K * 3);

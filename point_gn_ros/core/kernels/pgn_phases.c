@@ -115,8 +115,16 @@ void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
     const int64_t c0 = j->S * chunk / j->nchunks, c1 = j->S * (chunk + 1) / j->nchunks;
     if (c1 <= c0) return;
     if (j->knn) {
+#ifdef PGN_PROFILE
+        const double t0 = pgn_now();
+#endif
         knn_chunk(j, tid, c0, c1);
-        if (!j->offs) return;   /* else these centres' offsets next (a lone cloud) */
+#ifdef PGN_PROFILE
+        const double dt = pgn_now() - t0;  /* a phase of its own in the profile's table */
+        pgn_prof[1] += dt;
+        pgn_prof[10] -= dt;
+#endif
+        if (!j->offs) return;   /* else these centres' offsets next */
     }
     if (j->offs) {
         offsets_centres(j->xyz, j->qx, j->qy, j->qz, j->nb, j->K, c0, c1, j->vx_out, j->part);

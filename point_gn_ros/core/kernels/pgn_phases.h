@@ -34,7 +34,8 @@ float pgn_knn_guess(const float *x, const float *y, const float *z, int64_t n, i
 typedef struct agg_job {
     /* kNN job (knn = 1): the stage's points (px, py, pz: n each) and centres (qx, qy, qz),
      * each thread with its own distance / key scratch and a private last row (below);
-     * with offs = 1 as well, each chunk then takes its centres' offsets (below) */
+     * with offs = 1 as well (the encoder's step), each chunk then takes its centres'
+     * offsets (below) */
     int knn;
     /* offsets job (offs = 1): the centres' offset rows into vx_out and their per-centre
      * sums of v and v^2 into part (2 S); xyz: the stage's points (AoS). With stdp = 1 also
