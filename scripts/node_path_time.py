@@ -44,6 +44,7 @@ def main() -> None:
     p.add_argument('--rate', type=float, default=0.0,
                    help='messages per second (0: back to back)')
     p.add_argument('--profile', action='store_true', help='cProfile one more pass')
+    p.add_argument('--sort', default='tottime', help='cProfile sort key (tottime, cumulative)')
     args = p.parse_args()
     from std_msgs.msg import Header
 
@@ -105,7 +106,7 @@ def main() -> None:
         prof.enable()
         run(args.messages)
         prof.disable()
-        pstats.Stats(prof).sort_stats('tottime').print_stats(30)
+        pstats.Stats(prof).sort_stats(args.sort).print_stats(40)
 
 
 if __name__ == '__main__':

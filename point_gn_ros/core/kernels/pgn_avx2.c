@@ -60,8 +60,8 @@ void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
                 _mm256_storeu_ps(acc + 32 * h + 8 * j, _mm256_fmadd_ps(sm[j], ik, mx[j]));
         }
         float *o = out + c * D2p;
-        for (int64_t d = 0; d < D; ++d) o[d] = gelu(acc[d]);
-        for (int64_t d = 0; d < D; ++d) o[D + d] = gelu(acc[32 + d]);
+        for (int64_t d = 0; d < D; ++d) o[d] = acc[d];
+        for (int64_t d = 0; d < D; ++d) o[D + d] = acc[32 + d];
         for (int64_t d = 2 * D; d < D2p; ++d) o[d] = 0.0f;
     }
 }
@@ -179,7 +179,7 @@ void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
         for (int a = 0; a < 3; ++a)
             for (int64_t j = 0; j < n; ++j) {
                 const int64_t p = a * 8 * M + j;
-                o[a * n + j] = gelu(T2[p] * (mx[p] + sm[p] * invk));
+                o[a * n + j] = T2[p] * (mx[p] + sm[p] * invk);
             }
         for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
     }

@@ -158,7 +158,7 @@ void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
         for (int64_t h = 0; h < D2; h += 8)
             _mm256_store_ps(acc + h, _mm256_mul_ps(_mm256_load_ps(t2 + h), _mm256_fmadd_ps(
                 red8_add(SM + h * 8), ik, red8_max(MX + h * 8))));
-        for (int64_t ch = 0; ch < D2; ++ch) o[ch] = gelu(acc[ch]);
+        for (int64_t ch = 0; ch < D2; ++ch) o[ch] = acc[ch];
         for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
     }
 }

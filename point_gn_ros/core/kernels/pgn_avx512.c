@@ -71,8 +71,8 @@ void pgn_aggregate_d32_avx512(const float *feat, int64_t D, const int64_t *cidx,
         _mm512_storeu_ps(acc + 32, _mm512_fmadd_ps(sm2, ik, mx2));
         _mm512_storeu_ps(acc + 48, _mm512_fmadd_ps(sm3, ik, mx3));
         float *o = out + c * D2p;
-        for (int64_t d = 0; d < D; ++d) o[d] = gelu(acc[d]);
-        for (int64_t d = 0; d < D; ++d) o[D + d] = gelu(acc[32 + d]);
+        for (int64_t d = 0; d < D; ++d) o[d] = acc[d];
+        for (int64_t d = 0; d < D; ++d) o[D + d] = acc[32 + d];
         for (int64_t d = 2 * D; d < D2p; ++d) o[d] = 0.0f;
     }
 #undef PGN_PE
@@ -169,7 +169,10 @@ static inline __attribute__((always_inline)) void sep_pass16(
                 /* pe / T: T is folded into Gs, rT and the caller's final scaling */
                 const __m512 pe = _mm512_mul_ps(_mm512_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]),
                                                 e[i]);
-                if (off) {
+                if (off == valid) {  /* offset channels only: no blend */
+                    const __m512 row = _mm512_maskz_loadu_ps(off, rows[i] + ch);
+                    w[i] = _mm512_mul_ps(_mm512_fmadd_ps(_mm512_sub_ps(row, g), rt, pe), pe);
+                } else if (off) {
                     const __m512 row = _mm512_maskz_loadu_ps(off, rows[i] + ch);
                     const __m512 f = _mm512_mask_blend_ps(
                         off, _mm512_add_ps(gs, pe), _mm512_fmadd_ps(_mm512_sub_ps(row, g), rt, pe));
@@ -244,9 +247,9 @@ void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
         }
         float *o = out + c * D2p;
         if (fx->B == 16)
-            for (int64_t d = 0; d < D2; ++d) o[d] = gelu(T2[d] * (mx[d] + sm[d] * invk));
+            for (int64_t d = 0; d < D2; ++d) o[d] = T2[d] * (mx[d] + sm[d] * invk);
         else
-            for (int64_t d = 0; d < D2; ++d) o[d] = gelu(mx[d] + sm[d] * invk);
+            for (int64_t d = 0; d < D2; ++d) o[d] = mx[d] + sm[d] * invk;
         for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
     }
 }

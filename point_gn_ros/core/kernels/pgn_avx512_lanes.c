@@ -179,13 +179,13 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
                 }
             }
         }
-        /* lanes reduced into the 64 floats past SM, then gelu as one vector loop (libmvec) */
+        /* lanes reduced into the 64 floats past SM (the caller applies gelu) */
         float *o = out + c * D2p, *acc = SM + 64 * 16;
         const __m512 ik = _mm512_set1_ps(invk);
         for (int64_t h = 0; h < D2; h += 16)
             _mm512_store_ps(acc + h, _mm512_mul_ps(_mm512_load_ps(t2 + h), _mm512_fmadd_ps(
                 red16_add(SM + h * 16), ik, red16_max(MX + h * 16))));
-        for (int64_t ch = 0; ch < D2; ++ch) o[ch] = gelu(acc[ch]);
+        for (int64_t ch = 0; ch < D2; ++ch) o[ch] = acc[ch];
         for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
     }
 }

@@ -110,34 +110,9 @@ static void std_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
 #endif
 }
 
-void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
-    agg_job *j = job;
-    const int64_t c0 = j->S * chunk / j->nchunks, c1 = j->S * (chunk + 1) / j->nchunks;
-    if (c1 <= c0) return;
-    if (j->knn) {
-#ifdef PGN_PROFILE
-        const double t0 = pgn_now();
-#endif
-        knn_chunk(j, tid, c0, c1);
-#ifdef PGN_PROFILE
-        const double dt = pgn_now() - t0;  /* a phase of its own in the profile's table */
-        pgn_prof[1] += dt;
-        pgn_prof[10] -= dt;
-#endif
-        if (!j->offs) return;   /* else these centres' offsets next */
-    }
-    if (j->offs) {
-        offsets_centres(j->xyz, j->qx, j->qy, j->qz, j->nb, j->K, c0, c1, j->vx_out, j->part);
-        if (j->stdp) std_centres(j, tid, c0, c1);
-        return;
-    }
-    if (j->vx_scale) {   /* these centres' offset rows, by 1 / std, just before their use */
-        float *v = j->vx_scale + c0 * j->K * 3;
-        const float rx = j->rx;
-#pragma omp simd
-        for (int64_t u = 0; u < (c1 - c0) * j->K * 3; ++u) v[u] *= rx;
-        if (j->scale_only) return;
-    }
+/* Stage aggregation of centres [c0, c1) by the kernel the job chose: rows of pooled values
+ * before gelu, zero padded to D2p. */
+static void aggregate_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
     const int64_t *cidx = j->cidx + c0;
     const int32_t *nb = j->nb + c0 * j->K;
     const float *vx = j->vx + c0 * j->K * 3;
@@ -187,4 +162,36 @@ void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
 #endif
     pgn_stage_aggregate(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cc, j->ax, j->q, out,
                     j->pe[tid], j->PS, j->mx[tid], j->sm[tid], j->use_fx ? &j->fx[tid] : NULL);
+}
+
+void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
+    agg_job *j = job;
+    const int64_t c0 = j->S * chunk / j->nchunks, c1 = j->S * (chunk + 1) / j->nchunks;
+    if (c1 <= c0) return;
+    if (j->knn) {
+#ifdef PGN_PROFILE
+        const double t0 = pgn_now();
+#endif
+        knn_chunk(j, tid, c0, c1);
+#ifdef PGN_PROFILE
+        const double dt = pgn_now() - t0;  /* a phase of its own in the profile's table */
+        pgn_prof[1] += dt;
+        pgn_prof[10] -= dt;
+#endif
+        if (!j->offs) return;   /* else these centres' offsets next */
+    }
+    if (j->offs) {
+        offsets_centres(j->xyz, j->qx, j->qy, j->qz, j->nb, j->K, c0, c1, j->vx_out, j->part);
+        if (j->stdp) std_centres(j, tid, c0, c1);
+        return;
+    }
+    if (j->vx_scale) {   /* these centres' offset rows, by 1 / std, just before their use */
+        float *v = j->vx_scale + c0 * j->K * 3;
+        const float rx = j->rx;
+#pragma omp simd
+        for (int64_t u = 0; u < (c1 - c0) * j->K * 3; ++u) v[u] *= rx;
+        if (j->scale_only) return;
+    }
+    aggregate_centres(j, tid, c0, c1);
+    gelu_rows(j->out + c0 * j->D2p, (c1 - c0) * j->D2p);
 }

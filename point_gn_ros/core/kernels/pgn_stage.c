@@ -205,8 +205,8 @@ void pgn_stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, cons
             }
         }
         float *o = out + c * D2p;
-        for (int64_t d = 0; d < D; ++d) o[d] = gelu(mx[d] + sm[d] * invk);
-        for (int64_t d = 0; d < D; ++d) o[D + d] = gelu(mx2[d] + sm2[d] * invk);
+        for (int64_t d = 0; d < D; ++d) o[d] = mx[d] + sm[d] * invk;
+        for (int64_t d = 0; d < D; ++d) o[D + d] = mx2[d] + sm2[d] * invk;
         for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
     }
 }
