@@ -169,10 +169,7 @@ static inline __attribute__((always_inline)) void sep_pass16(
                 /* pe / T: T is folded into Gs, rT and the caller's final scaling */
                 const __m512 pe = _mm512_mul_ps(_mm512_set1_ps(fx->A[m * nta + 3 * (t0 + i) + a]),
                                                 e[i]);
-                if (off == valid) {  /* offset channels only: no blend */
-                    const __m512 row = _mm512_maskz_loadu_ps(off, rows[i] + ch);
-                    w[i] = _mm512_mul_ps(_mm512_fmadd_ps(_mm512_sub_ps(row, g), rt, pe), pe);
-                } else if (off) {
+                if (off) {
                     const __m512 row = _mm512_maskz_loadu_ps(off, rows[i] + ch);
                     const __m512 f = _mm512_mask_blend_ps(
                         off, _mm512_add_ps(gs, pe), _mm512_fmadd_ps(_mm512_sub_ps(row, g), rt, pe));
