@@ -63,7 +63,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_head.c': ['-fno-fast-math'],
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
 # included by the C files: part of the snapshot and the cache key
-_HEADERS = ('pgn_common.h', 'pgn_lone.h', 'pgn_phases.h')
+_HEADERS = ('pgn_common.h', 'pgn_geom.h', 'pgn_lone.h', 'pgn_phases.h')
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
 ABI_VERSION = 2
 _log = logging.getLogger(__name__)

@@ -49,6 +49,17 @@ static inline void gpe3(const float *v, const float *cent, int64_t n, float q, f
     }
 }
 
+/* 1 / (std + 1e-5) of count values from per-centre float partials part[2 c], part[2 c + 1]
+ * (their sum and sum of squares), added in double in centre order: the same bits whichever
+ * thread made which partials. */
+static float inv_std(const float *part, int64_t S, double count) {
+    double s1 = 0.0, s2 = 0.0;
+    for (int64_t c = 0; c < S; ++c) { s1 += part[2 * c]; s2 += part[2 * c + 1]; }
+    double var = (s2 - s1 * s1 / count) / (count - 1.0);
+    if (var < 0.0) var = 0.0;
+    return (float)(1.0 / (sqrt(var) + 1e-5));
+}
+
 static void *xalloc(size_t bytes) {
     /* 64-byte aligned, zeroed: padding lanes stay 0 (they enter sums as 0 - 0) */
     size_t sz = (bytes + 63) / 64 * 64;
@@ -169,6 +180,8 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
          * order), in one step that a lone cloud shares with the helper; the aggregation's
          * chunks scale their own offset rows by 1 / std */
         TIC(3);
+        /* 16 chunks on two threads: a claimed chunk is short, so the caller never waits
+         * long for a helper that was descheduled mid-chunk */
         const int64_t nch = par ? (S < 16 ? S : 16) : 1;
         agg_job oj;
         memset(&oj, 0, sizeof(oj));
@@ -186,18 +199,8 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         oj.feat = feat; oj.Dp = Dp; oj.cidx = cidx; oj.fpart = parts;
         oj.mx[0] = mx; oj.sm[0] = sm; oj.mx[1] = vec2; oj.sm[1] = vec2 ? vec2 + VS : NULL;
         pgn_par_run(par, pgn_phase_chunk, &oj, nch);
-        double s1 = 0.0, s2 = 0.0;
-        for (int64_t c = 0; c < S; ++c) { s1 += oparts[2 * c]; s2 += oparts[2 * c + 1]; }
-        const double nvd = (double)(S * K * 3);
-        double vvar = (s2 - s1 * s1 / nvd) / (nvd - 1.0);
-        if (vvar < 0.0) vvar = 0.0;
-        const float rx = (float)(1.0 / (sqrt(vvar) + 1e-5));
-        double f1 = 0.0, f2 = 0.0;
-        for (int64_t c = 0; c < S; ++c) { f1 += parts[2 * c]; f2 += parts[2 * c + 1]; }
-        const double nf = (double)(S * K * D);
-        double var = (f2 - f1 * f1 / nf) / (nf - 1.0);
-        if (var < 0.0) var = 0.0;
-        const float rf = (float)(1.0 / (sqrt(var) + 1e-5));
+        const float rx = inv_std(oparts, S, (double)(S * K * 3));
+        const float rf = inv_std(parts, S, (double)(S * K * D));
         TOC(3, 10);
         TIC(4);
         /* per-channel centre and axis of the pe channels (padding lanes: ignored) */
@@ -242,9 +245,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         job.cidx = cidx; job.nb = nb; job.vx = vx; job.cc = cc; job.ax = ax; job.r = rf;
         job.vx_scale = vx; job.rx = rx;
         job.q = q; job.out = nfeat;
-        /* 16 chunks on two threads: a claimed chunk is short, so the caller never waits
-         * long for a helper that was descheduled mid-chunk */
-        job.nchunks = par ? (S < 16 ? S : 16) : 1;
+        job.nchunks = nch;
         job.pe[0] = pe; job.mx[0] = mx; job.sm[0] = sm;
         job.pe[1] = pe2; job.mx[1] = vec2; job.sm[1] = vec2 ? vec2 + VS : NULL;
         if (fx) {

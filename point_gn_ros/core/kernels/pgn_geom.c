@@ -12,6 +12,8 @@
 #include <immintrin.h>
 #endif
 
+#include "pgn_geom.h"
+
 /* One column of torch's CPU `sum(dim=0)` over a contiguous (n, 3) float32 tensor
  * (ATen SumKernel.cpp cascade_sum -> scalar_outer_sum -> row_sum with ilp 4):
  * four strided partials, each a 4-level cascade; tail into partial 0; then

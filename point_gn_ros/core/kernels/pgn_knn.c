@@ -11,6 +11,8 @@
 #include <immintrin.h>
 #endif
 
+#include "pgn_geom.h"
+
 /* Keys sort by (distance, index): distances are >= +0 so their bit patterns
  * order like the values. */
 static inline uint64_t make_key(float d, int64_t i) {

@@ -104,9 +104,7 @@ static void std_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
         std_centre(j->feat, j->Dp, j->nb + c * j->K, j->K, j->feat + j->cidx[c] * j->Dp,
                    j->mx[tid], j->sm[tid], j->fpart + 2 * c, j->fpart + 2 * c + 1);
 #ifdef PGN_PROFILE
-    const double dt = pgn_now() - t0;  /* a phase of its own in the profile's table */
-    pgn_prof[7] += dt;
-    pgn_prof[10] -= dt;
+    pgn_prof_split(7, t0);
 #endif
 }
 
@@ -174,9 +172,7 @@ void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
 #endif
         knn_chunk(j, tid, c0, c1);
 #ifdef PGN_PROFILE
-        const double dt = pgn_now() - t0;  /* a phase of its own in the profile's table */
-        pgn_prof[1] += dt;
-        pgn_prof[10] -= dt;
+        pgn_prof_split(1, t0);
 #endif
         if (!j->offs) return;   /* else these centres' offsets next */
     }

@@ -7,6 +7,7 @@
 #define PGN_PHASES_H
 
 #include "pgn_common.h"
+#include "pgn_geom.h"
 
 #ifdef PGN_PROFILE
 #include <time.h>
@@ -16,15 +17,14 @@ static inline double pgn_now(void) {
     clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
     return ts.tv_sec + 1e-9 * ts.tv_nsec;
 }
+/* The time since t0, spent inside a step (slot 10), counted as a phase of its own: slot. */
+static inline void pgn_prof_split(int slot, double t0) {
+    const double dt = pgn_now() - t0;
+    pgn_prof[slot] += dt;
+    pgn_prof[10] -= dt;
+}
 #endif
 
-/* geometry (pgn_geom.c, pgn_knn.c: built without fast-math) */
-void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
-             int64_t m, int64_t *idx, float *min_d);
-void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const float *cx,
-             const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
-             uint64_t *keys, float guess);
-float pgn_knn_guess(const float *x, const float *y, const float *z, int64_t n, int64_t k);
 
 /* A lone cloud on two threads: the caller and one helper share each stage's
  * aggregation by chunks of centres, claimed from an atomic counter. Every centre's

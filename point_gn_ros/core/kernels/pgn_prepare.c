@@ -10,6 +10,10 @@
  */
 #include <math.h>
 #include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "pgn_geom.h"
 
 /* numpy's pairwise summation of n doubles (stride 1), as its mean over a contiguous axis */
 static double pairwise_sum(const double *a, int64_t n) {
@@ -106,13 +110,6 @@ void pgn_canonical_yaw(const float *xyz, int64_t n, float *out, double *dx, doub
 }
 
 /* ---- sampling.canonical_order and midpoint_fill's neighbours ---- */
-
-#include <stdlib.h>
-#include <string.h>
-
-void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const float *cx,
-             const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
-             uint64_t *keys, float guess);
 
 /* A float's bits as an unsigned key that orders like the value; -0 as +0 (they compare
  * equal, so a stable sort keeps their order). */
