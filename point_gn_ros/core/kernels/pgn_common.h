@@ -45,13 +45,13 @@ static inline void gelu_rows(float *p, int64_t n) {
  * only ever drops values below e^-30. */
 typedef struct {
     int64_t n, M;     /* centres per axis, blocks of B */
-    int B;            /* block width: 8 (portable and make_pe), 16 (AVX-512 sep_pass16) */
+    int B;            /* block width: 8 (portable and make_pe), 16 (AVX-512 sep_centre16) */
     float q, h2q;     /* q = -1 / (2 sigma^2), h2q = -2 q h */
     float W;          /* clamp for w */
     const float *b;   /* (M,) block base centres */
     const float *T;   /* (M, 8) */
     float *A;         /* (K * 3, M) scratch */
-    float *E;         /* (K * 3, 8) scratch */
+    float *E;         /* (K * 3, 9) scratch, then room for AVX-512's (K, 16) E16 */
 } sep_t;
 
 /* 2^f on [-1/2, 1/2]: degree-5 polynomial with p(0) = 1 exactly, minimax for the relative

@@ -111,13 +111,15 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     float *sepb = xalloc(sizeof(float) * (size_t)Mmax);
     float *sepT = xalloc(sizeof(float) * (size_t)(Mmax + 1) * 16);
     float *sepA = xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax);
-    float *sepE = xalloc(sizeof(float) * (size_t)K1 * 3 * 9);  /* rows 0..8 of E */
+    /* rows 0..8 of E, then AVX-512's E16 (K1 * 3, 16) 64-byte aligned (pgn_avx512.c) */
+    const size_t sepEn = (size_t)K1 * 3 * (9 + 16) + 16;
+    float *sepE = xalloc(sizeof(float) * sepEn);
     /* the helper's own scratch (pe buffers, mx / sm, separable A / E) */
     const int npar = par ? 2 : 1;
     float *pe2 = par ? xalloc(sizeof(float) * (size_t)PS * 6) : NULL;
     float *vec2 = par ? xalloc(sizeof(float) * (size_t)VS * 2) : NULL;
     float *sepA2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax) : NULL;
-    float *sepE2 = par ? xalloc(sizeof(float) * (size_t)K1 * 3 * 9) : NULL;
+    float *sepE2 = par ? xalloc(sizeof(float) * sepEn) : NULL;
     /* the helper's kNN scratch, and a private last row per thread (knn_chunk) */
     float *scratch2 = par ? xalloc(sizeof(float) * (size_t)N) : NULL;
     uint64_t *keys2 = par ? xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32)) : NULL;
@@ -208,7 +210,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         for (int64_t d = 0; d < D2; ++d) { cc[d] = cents[d % nc]; ax[d] = (int32_t)(d / nc); }
         sep_t fxs, *fx = NULL;
         /* blocks of 16 where the AVX-512 path runs and float range allows, else of 8; the
-         * kernels that fold T out (sep_pass16, AVX2's sep_pass8) also need tfold_ok */
+         * kernels that fold T out (sep_centre16, AVX2's sep_pass8) also need tfold_ok */
         int B = 0;
 #if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
         if (pgn_sep_ok(nc, (double)q, 16) && tfold_ok(nc, (double)q, 15)) B = 16;

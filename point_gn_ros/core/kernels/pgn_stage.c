@@ -78,7 +78,7 @@ void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K) {
     }
     float *E = fx->E;
     const float h2q = fx->h2q;
-    if (fx->B == 16) {  /* P, P^2, P^4, P^8: sep_pass16 builds the 16 powers */
+    if (fx->B == 16) {  /* P, P^2, P^4, P^8: sep_centre16 builds the 16 powers */
 #pragma omp simd
         for (int64_t i = 0; i < nta; ++i) {
             const float p1 = exp_fast(h2q * w[i]), p2 = p1 * p1, p4 = p2 * p2;
