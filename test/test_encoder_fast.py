@@ -173,7 +173,9 @@ def test_degenerate_clouds_match_oracle(encoder: PointGNEncoder, name: str) -> N
     # refused for it (sigma 0.05)
     EncoderConfig(num_points=256, init_dim=48, stages=2, k=60, sigma=0.1),
     EncoderConfig(num_points=256, init_dim=48, stages=2, k=60, sigma=0.05),
-], ids=['small', 'odd_sizes', 'sigma_0.1', 'sigma_0.05'])
+    # wide Gaussians: AVX-512's chained block factors (sep_t.C) over four blocks an axis
+    EncoderConfig(num_points=256, init_dim=48, stages=2, k=60, sigma=0.6),
+], ids=['small', 'odd_sizes', 'sigma_0.1', 'sigma_0.05', 'sigma_0.6'])
 def test_other_configs_match_oracle(cfg: EncoderConfig) -> None:
     _kernels_or_skip()
     rng = np.random.default_rng(3)

@@ -75,6 +75,17 @@ static int tfold_ok(int64_t nc, double q, int L) {
     const double h = 2.0 / (double)(nc + 1), aq = fabs(q);
     return 2.0 * aq * L * h + aq * L * L * h * h < 40.0;
 }
+
+/* Whether sep_t's chained A (blocks of 16) stays in float range and loses nothing that
+ * matters: the factors P^16 and C_m within e^+-80, and where some A_m underflows (|b_m - w|
+ * > sqrt(87 / |q|), so |w| > sqrt(87 / |q|) - 1) every Gaussian of centres in (-1, 1) is
+ * below e^-30, so the zeros the chain carries on lose only such values. */
+static int chain_ok(int64_t nc, double q) {
+    const double h = 2.0 / (double)(nc + 1), aq = fabs(q), W = 1.0 + sqrt(87.0 / aq);
+    const double r = sqrt(87.0 / aq) - 2.0;
+    return 32.0 * aq * h * W < 80.0 && 32.0 * aq * h + 256.0 * aq * h * h < 80.0
+           && r > 0.0 && aq * r * r > 30.0;
+}
 #endif
 
 
@@ -109,6 +120,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     int64_t *cidx = xalloc(sizeof(int64_t) * (size_t)S1);
     const int64_t Mmax = (Dmax / 3 + 7) / 8;
     float *sepb = xalloc(sizeof(float) * (size_t)Mmax);
+    float *sepC = xalloc(sizeof(float) * (size_t)Mmax);
     float *sepT = xalloc(sizeof(float) * (size_t)(Mmax + 1) * 16);
     float *sepA = xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax);
     /* rows 0..8 of E, then AVX-512's E16 (K1 * 3, 16) 64-byte aligned (pgn_avx512.c) */
@@ -145,7 +157,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     }
 #endif
     if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
-        || !nb || !keys || !pe || !sepb || !sepT || !sepA || !sepE
+        || !nb || !keys || !pe || !sepb || !sepC || !sepT || !sepA || !sepE
         || !parts || !oparts || !tails
         || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2))) {
         rc = -1;
@@ -236,6 +248,15 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
                     sepT[m * B + l] = (float)exp(2.0 * qd * l * h * bm + qd * l * l * h * h);
             }
             fxs.b = sepb;
+            fxs.C = NULL;
+#if defined(__AVX512F__) && !defined(PGN_NO_CHAIN)
+            if (B == 16 && chain_ok(nc, qd)) {
+                for (int64_t m = 0; m < fxs.M; ++m)
+                    sepC[m] = (float)exp(32.0 * qd * h * (b0 + 16.0 * (double)m * h)
+                                         + 256.0 * qd * h * h);
+                fxs.C = sepC;
+            }
+#endif
             fxs.T = sepT;
             fxs.A = sepA;
             fxs.E = sepE;
@@ -336,7 +357,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 done:
     free(featA); free(featB); free(xyz); free(cxyz); free(soa); free(scratch); free(vx);
     free(vec); free(pe); free(ax); free(cidx); free(nb); free(keys);
-    free(sepb); free(sepT); free(sepA); free(sepE);
+    free(sepb); free(sepC); free(sepT); free(sepA); free(sepE);
     free(pe2); free(vec2); free(sepA2); free(sepE2); free(scratch2); free(keys2); free(tails);
     free(parts); free(oparts); free(lscr);
     return rc;
