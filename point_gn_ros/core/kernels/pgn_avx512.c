@@ -173,7 +173,8 @@ static inline __attribute__((always_inline)) void sep_group16(
      * the max over every w. */
 #define PGN_STEP(u, t)                                                                     \
     do {                                                                                   \
-        const __m512 e_ = _mm512_load_ps(E16 + (t) * 16);                                  \
+        __m512 e_ = _mm512_load_ps(E16 + (t) * 16);                                        \
+        __asm__("" : "+v"(e_)); /* one load, kept in a register (not one per block) */     \
         const float *row_ = feat + (int64_t)nr[t] * Dp;                                    \
         for (int b = 0; b < NB; ++b) {                                                     \
             /* pe / T: T is folded into Gs, rT and the caller's final scaling */           \
