@@ -135,6 +135,10 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
                 const int64_t nv = K - t0 <= 0 ? 0 : (K - t0 < 16 ? K - t0 : 16);
                 vm[i] = (__mmask16)((1u << nv) - 1u);
             }
+            /* only the chunk's last group short (K = 120: 8 of its 16 lanes): the other
+             * groups' max unmasked (a masked max also costs a register copy) */
+            int head_full = 1;
+            for (int i = 0; i < NG - 1; ++i) head_full &= vm[i] == 0xffff;
             for (int a = 0; a < 3; ++a) {
                 const float *wa = WV + a * Kc + 16 * g0;
                 __m512 P[NG], U[NG];
@@ -151,24 +155,32 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
                     for (int64_t l = 0; l < L; ++l) {
                         const int64_t ch = a * nc + m * lp->B + l;
                         __m512 mx = _mm512_set1_ps(-INFINITY), sm = zero;
+/* one channel over the chunk's groups: w = (f + U) U, f from RT (offset half) or the
+ * centre's g (centre half); FULL: groups before the last have no padding lanes */
+#define PGN_CHANNEL(FULL, F)                                                               \
+    for (int i = 0; i < NG; ++i) {                                                         \
+        const __m512 w = _mm512_mul_ps(_mm512_add_ps((F), U[i]), U[i]);                   \
+        U[i] = _mm512_mul_ps(U[i], P[i]);                                                  \
+        mx = (FULL) && i < NG - 1 ? _mm512_max_ps(mx, w)                                   \
+                                  : _mm512_mask_max_ps(mx, vm[i], mx, w);                  \
+        sm = _mm512_add_ps(sm, w);                                                         \
+    }
                         if (ch < D) {
                             const float *rt = RT + ch * Kc + 16 * g0;
-                            for (int i = 0; i < NG; ++i) {
-                                const __m512 f = _mm512_load_ps(rt + 16 * i);
-                                const __m512 w = _mm512_mul_ps(_mm512_add_ps(f, U[i]), U[i]);
-                                U[i] = _mm512_mul_ps(U[i], P[i]);
-                                mx = _mm512_mask_max_ps(mx, vm[i], mx, w);
-                                sm = _mm512_add_ps(sm, w);
+                            if (head_full) {
+                                PGN_CHANNEL(1, _mm512_load_ps(rt + 16 * i))
+                            } else {
+                                PGN_CHANNEL(0, _mm512_load_ps(rt + 16 * i))
                             }
                         } else {
                             const __m512 g = _mm512_set1_ps(cf[ch - D] * ct[ch]);
-                            for (int i = 0; i < NG; ++i) {
-                                const __m512 w = _mm512_mul_ps(_mm512_add_ps(g, U[i]), U[i]);
-                                U[i] = _mm512_mul_ps(U[i], P[i]);
-                                mx = _mm512_mask_max_ps(mx, vm[i], mx, w);
-                                sm = _mm512_add_ps(sm, w);
+                            if (head_full) {
+                                PGN_CHANNEL(1, g)
+                            } else {
+                                PGN_CHANNEL(0, g)
                             }
                         }
+#undef PGN_CHANNEL
                         if (g0) {  /* past 128 neighbours: the chunks ahead's partials */
                             mx = _mm512_max_ps(mx, _mm512_load_ps(MX + ch * 16));
                             sm = _mm512_add_ps(sm, _mm512_load_ps(SM + ch * 16));
