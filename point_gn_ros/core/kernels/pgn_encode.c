@@ -76,14 +76,14 @@ static int tfold_ok(int64_t nc, double q, int L) {
     return 2.0 * aq * L * h + aq * L * L * h * h < 40.0;
 }
 
-/* Whether sep_t's chained A (blocks of 16) stays in float range and loses nothing that
- * matters: the factors P^16 and C_m within e^+-80, and where some A_m underflows (|b_m - w|
+/* Whether sep_t's chained A (blocks of B) stays in float range and loses nothing that
+ * matters: the factors P^B and C_m within e^+-80, and where some A_m underflows (|b_m - w|
  * > sqrt(87 / |q|), so |w| > sqrt(87 / |q|) - 1) every Gaussian of centres in (-1, 1) is
  * below e^-30, so the zeros the chain carries on lose only such values. */
-static int chain_ok(int64_t nc, double q) {
+static int chain_ok(int64_t nc, double q, int B) {
     const double h = 2.0 / (double)(nc + 1), aq = fabs(q), W = 1.0 + sqrt(87.0 / aq);
-    const double r = sqrt(87.0 / aq) - 2.0;
-    return 32.0 * aq * h * W < 80.0 && 32.0 * aq * h + 256.0 * aq * h * h < 80.0
+    const double r = sqrt(87.0 / aq) - 2.0, b = (double)B;
+    return 2.0 * b * aq * h * W < 80.0 && 2.0 * b * aq * h + b * b * aq * h * h < 80.0
            && r > 0.0 && aq * r * r > 30.0;
 }
 #endif
@@ -249,11 +249,17 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             }
             fxs.b = sepb;
             fxs.C = NULL;
-#if defined(__AVX512F__) && !defined(PGN_NO_CHAIN)
-            if (B == 16 && chain_ok(nc, qd)) {
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_CHAIN)
+            /* the ISA paths that chain: AVX-512 with blocks of 16, AVX2 with blocks of 8 */
+#if defined(__AVX512F__)
+            const int chain_b = 16;
+#else
+            const int chain_b = 8;
+#endif
+            if (B == chain_b && chain_ok(nc, qd, B)) {
                 for (int64_t m = 0; m < fxs.M; ++m)
-                    sepC[m] = (float)exp(32.0 * qd * h * (b0 + 16.0 * (double)m * h)
-                                         + 256.0 * qd * h * h);
+                    sepC[m] = (float)exp(2.0 * B * qd * h * (b0 + (double)B * (double)m * h)
+                                         + (double)(B * B) * qd * h * h);
                 fxs.C = sepC;
             }
 #endif

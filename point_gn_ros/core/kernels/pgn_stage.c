@@ -55,6 +55,34 @@ void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K) {
             }
         }
     }
+#elif defined(PGN_AVX2)
+    if (fx->C) {  /* as above with blocks of 8: A_{m+1} = A_m P^8 C_m */
+        const __m256 vb = _mm256_set1_ps(fx->b[0]);
+        const __m256 vs = _mm256_set1_ps(-fx->q * 1.44269504088896341f);
+        const __m256 s8 = _mm256_set1_ps(-8.0f * fx->h2q * 1.44269504088896341f);
+        const __m256 tmax = _mm256_set1_ps(125.0f);
+        for (int64_t i = 0; i < nta; i += 8) {
+            /* the last few through a zero-padded copy, their results back one by one */
+            const int64_t nl = nta - i < 8 ? nta - i : 8;
+            float tw[8] = {0}, ta[8];
+            for (int64_t l = 0; l < nl && nl < 8; ++l) tw[l] = w[i + l];
+            const __m256 wv = nl == 8 ? _mm256_loadu_ps(w + i) : _mm256_loadu_ps(tw);
+            const __m256 u = _mm256_sub_ps(vb, wv);
+            const __m256 t = _mm256_mul_ps(_mm256_mul_ps(u, u), vs);
+            /* exp2_neg_avx2 clamps t at 125 (2^-125, not 0): a chain must start from 0 */
+            __m256 a = _mm256_and_ps(exp2_neg_avx2(t), _mm256_cmp_ps(t, tmax, _CMP_LT_OQ));
+            const __m256 p8 = exp2_neg_avx2(_mm256_mul_ps(s8, wv));
+            for (int64_t m = 0; m < M; ++m) {
+                if (m) a = _mm256_mul_ps(_mm256_mul_ps(a, p8), _mm256_set1_ps(fx->C[m - 1]));
+                if (nl == 8) {
+                    _mm256_storeu_ps(fx->A + m * nta + i, a);
+                } else {
+                    _mm256_storeu_ps(ta, a);
+                    for (int64_t l = 0; l < nl; ++l) fx->A[m * nta + i + l] = ta[l];
+                }
+            }
+        }
+    }
 #endif
     for (int64_t m = 0; m < M && !fx->C; ++m) {
         const float bm = fx->b[m], q = fx->q;
