@@ -147,6 +147,7 @@ void pgn_aggregate_d32_avx512(const float *feat, int64_t D, const int64_t *cidx,
 void pgn_std_centre_avx512(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,
                            const float *cf, float *a1, float *a2);
 #endif
+/* pgn_avx512_sep.c */
 #if defined(__AVX512F__) && defined(__AVX512VL__)
 void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,

@@ -123,7 +123,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     float *sepC = xalloc(sizeof(float) * (size_t)Mmax);
     float *sepT = xalloc(sizeof(float) * (size_t)(Mmax + 1) * 16);
     float *sepA = xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax);
-    /* rows 0..8 of E, then AVX-512's E16 (K1 * 3, 16) 64-byte aligned (pgn_avx512.c) */
+    /* rows 0..8 of E, then AVX-512's E16 (K1, 16) 64-byte aligned (pgn_avx512_sep.c) */
     const size_t sepEn = (size_t)K1 * 3 * (9 + 16) + 16;
     float *sepE = xalloc(sizeof(float) * sepEn);
     /* the helper's own scratch (pe buffers, mx / sm, separable A / E) */

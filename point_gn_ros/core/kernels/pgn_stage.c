@@ -2,8 +2,9 @@
  * generic neighbourhood aggregation (pgn_stage_aggregate) and the separable-form check.
  *
  * Compiled with -O3 -march=native -ffast-math; the geometry (FPS, kNN) lives in pgn_geom.c,
- * compiled without fast-math so neighbour choices match the oracle exactly; pgn_avx512.c
- * holds the AVX-512 versions, pgn_encode.c drives one cloud through the stages.
+ * compiled without fast-math so neighbour choices match the oracle exactly; pgn_avx512.c,
+ * pgn_avx512_sep.c and pgn_avx512_lanes.c hold the AVX-512 versions, pgn_encode.c drives
+ * one cloud through the stages.
  */
 #include "pgn_common.h"
 
