@@ -173,9 +173,11 @@ def test_degenerate_clouds_match_oracle(encoder: PointGNEncoder, name: str) -> N
     # refused for it (sigma 0.05)
     EncoderConfig(num_points=256, init_dim=48, stages=2, k=60, sigma=0.1),
     EncoderConfig(num_points=256, init_dim=48, stages=2, k=60, sigma=0.05),
-    # wide Gaussians: AVX-512's chained block factors (sep_t.C) over four blocks an axis
+    # wide Gaussians: the chained block factors (sep_t.C) over four blocks an axis, and
+    # near the edge chain_ok allows (|q| (sqrt(87 / |q|) - 2)^2 = 30.3 against 30)
     EncoderConfig(num_points=256, init_dim=48, stages=2, k=60, sigma=0.6),
-], ids=['small', 'odd_sizes', 'sigma_0.1', 'sigma_0.05', 'sigma_0.6'])
+    EncoderConfig(num_points=256, init_dim=48, stages=2, k=60, sigma=0.37),
+], ids=['small', 'odd_sizes', 'sigma_0.1', 'sigma_0.05', 'sigma_0.6', 'sigma_0.37'])
 def test_other_configs_match_oracle(cfg: EncoderConfig) -> None:
     _kernels_or_skip()
     rng = np.random.default_rng(3)
