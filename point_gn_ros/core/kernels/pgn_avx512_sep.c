@@ -15,8 +15,8 @@
  * above (G holds cf[ch] / cf[ch - D]); lanes past an axis's n centres are masked off.
  * mx, sm, G: 2D + 16 floats of scratch. Blocks of 8 (sep_pass) take four neighbours a
  * pass, like pgn_stage_aggregate; blocks of 16 (sep_centre16) run each group of blocks
- * over all K neighbours with its max and sum in registers (BENCHMARKS.md, "2026-12-05:
- * groups of blocks over all neighbours"). */
+ * over all K neighbours with its max and sum in registers (BENCHMARKS.md, "2026-12-05,
+ * second session"). */
 static inline __attribute__((always_inline)) void sep_pass(
         const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
         int64_t D, const float *G, float r, float *mx, float *sm) {
@@ -73,9 +73,9 @@ enum { SEP_CTR, SEP_OFF, SEP_MIX };
 
 static inline __attribute__((always_inline)) void sep_group16(
         const int kind, const int NB, const int64_t *chs, const __mmask16 *valid,
-        const __mmask16 *off, const float *const *Ab, const float *E16, int a,
-        const float *feat, int64_t Dp, const int32_t *nr, int64_t K, const float *G,
-        const float *Gs, const float *rT, float *mx, float *sm) {
+        const __mmask16 *off, const float *const *Ab, const float *E16, const float *feat,
+        int64_t Dp, const int32_t *nr, int64_t K, const float *G, const float *Gs,
+        const float *rT, float *mx, float *sm) {
     /* one or two blocks: two neighbours a step into two sets of chains, so that the
      * latencies overlap */
     const int U = NB <= 2 ? 2 : 1;
@@ -202,9 +202,8 @@ static void sep_centre16(const sep_t *fx, int64_t D, const float *feat, int64_t 
                 const int64_t *c = chs + b0;
                 const __mmask16 *vl = valid + b0, *of = off + b0;
                 const float *const *ab = Ab + b0;
-                const float *e = E16;
 #define PGN_GROUP(KIND, NBK) \
-    sep_group16(KIND, NBK, c, vl, of, ab, e, a, feat, Dp, nr, K, G, Gs, rT, mx, sm)
+    sep_group16(KIND, NBK, c, vl, of, ab, E16, feat, Dp, nr, K, G, Gs, rT, mx, sm)
                 if (kind == SEP_MIX) PGN_GROUP(SEP_MIX, 1);
                 else if (kind == SEP_OFF) {
                     switch (nbk) {
@@ -255,11 +254,11 @@ void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
         for (int64_t d = D2; d < D2 + 32; ++d) G[d] = 0.0f;
         if (fx->B == 16)
             for (int64_t d = 0; d < D2 + 32; ++d) Gs[d] = G[d] * rT[d] / r;
-        for (int64_t d = 0; d < D2 + 32; ++d) { mx[d] = -INFINITY; sm[d] = 0.0f; }
         pgn_sep_prepare(fx, vx + c * K * 3, K);
-        if (fx->B == 16) {
+        if (fx->B == 16) {  /* every group stores its channels' max and sum once */
             sep_centre16(fx, D, feat, Dp, nr, K, E16, G, Gs, rT, mx, sm);
-        } else {
+        } else {            /* the passes update them */
+            for (int64_t d = 0; d < D2 + 32; ++d) { mx[d] = -INFINITY; sm[d] = 0.0f; }
             int64_t t = 0;
             for (; t + 4 <= K; t += 4) {
                 const float *rows[4] = {feat + (int64_t)nr[t] * Dp, feat + (int64_t)nr[t + 1] * Dp,

@@ -50,9 +50,9 @@ typedef struct {
     float W;          /* clamp for w */
     const float *b;   /* (M,) block base centres */
     const float *T;   /* (M, 8) */
-    /* AVX-512, B = 16, where chain_ok: A_{m+1} = A_m C_m P^16 with C_m = exp(32 q h b_m +
-     * 256 q h^2) and P^16 = exp(-32 q h w), so a block's A costs two multiplies instead of
-     * an exponential; NULL: each A_m its own exponential */
+    /* where chain_ok (AVX-512 with B = 16, AVX2 with B = 8): A_{m+1} = A_m C_m P^B with
+     * C_m = exp(2 B q h b_m + B^2 q h^2) and P^B = exp(-2 B q h w), so a block's A costs
+     * two multiplies instead of an exponential; NULL: each A_m its own exponential */
     const float *C;   /* (M,) */
     float *A;         /* (K * 3, M) scratch */
     float *E;         /* (K * 3, 9) scratch, then room for AVX-512's (K, 16) E16 */

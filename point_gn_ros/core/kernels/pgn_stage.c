@@ -66,8 +66,9 @@ void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K) {
             /* the last few through a zero-padded copy, their results back one by one */
             const int64_t nl = nta - i < 8 ? nta - i : 8;
             float tw[8] = {0}, ta[8];
-            for (int64_t l = 0; l < nl && nl < 8; ++l) tw[l] = w[i + l];
-            const __m256 wv = nl == 8 ? _mm256_loadu_ps(w + i) : _mm256_loadu_ps(tw);
+            if (nl < 8)
+                for (int64_t l = 0; l < nl; ++l) tw[l] = w[i + l];
+            const __m256 wv = _mm256_loadu_ps(nl == 8 ? w + i : tw);
             const __m256 u = _mm256_sub_ps(vb, wv);
             const __m256 t = _mm256_mul_ps(_mm256_mul_ps(u, u), vs);
             /* exp2_neg_avx2 clamps t at 125 (2^-125, not 0): a chain must start from 0 */
