@@ -4,10 +4,12 @@
 usage: scripts/lone_agreement.py [--bank BANK] [--data DIR] [--split test] [--cache DIR]
 
 Encodes the split as `point_gn eval` does, complete objects at random yaw (seed 0) and one
-single-view scan of each object (seed 0), then classifies every row twice through the bank's
-Classifier: in one batch (the torch path) and alone (the compiled path). Reports the labels
-that differ, the accuracies and the largest probability, novelty and gate differences. An
-agreement check of two implementations of one function, not an accuracy figure.
+single-view scan of each object (seed 0), then classifies every row three times through the
+bank's Classifier: in one batch by the torch head (`compiled_finish = False`), alone (the
+compiled path), and in one batch as the node does (torch up to an exact section's cosines,
+then the compiled finish). Reports the labels that differ from the torch head's, the
+accuracies and the largest probability, novelty and gate differences. An agreement check of
+implementations of one function, not an accuracy figure.
 """
 
 from __future__ import annotations
@@ -48,21 +50,29 @@ def main() -> None:
                'single-view scans, seed 0':
                ViewsDataset(ds, 1, 0, VIEW_PROTOCOLS['hpr'][0], include_full=False,
                             random_yaw=True)}
-    print('| queries | labels differing | accuracy batch / lone | max prob. diff | '
-          'max novelty diff | max gate diff |\n|---|---:|---:|---:|---:|---:|')
+    print('| queries | labels differing: lone / batch | accuracy torch / lone / batch | '
+          'max prob. diff: lone / batch | max novelty diff | max gate diff |\n'
+          '|---|---:|---:|---:|---:|---:|')
     for what, source in sources.items():
         feats = encode_dataset(source, make_encoder(bank.config), cache_dir=args.cache)
         with torch.no_grad():
+            clf.compiled_finish = False
             prob, nov, gate = clf._evaluate(feats)
+            clf.compiled_finish = True
+            batch_prob = clf._evaluate(feats)[0]
             lone = [clf._evaluate(feats[i:i + 1]) for i in range(len(feats))]
         lone_prob = torch.cat([o[0] for o in lone])
         lone_nov = torch.cat([o[1] for o in lone])
         gate_diff = '-' if gate is None else \
             f'{float((torch.cat([o[2] for o in lone]) - gate).abs().max()):.2g}'
         lab, lone_lab = prob.argmax(1).numpy(), lone_prob.argmax(1).numpy()
-        print(f'| {len(feats)} {args.split} {what} | {int((lab != lone_lab).sum())} | '
-              f'{100 * (lab == true).mean():.2f} / {100 * (lone_lab == true).mean():.2f} % | '
-              f'{float((lone_prob - prob).abs().max()):.2g} | '
+        batch_lab = batch_prob.argmax(1).numpy()
+        print(f'| {len(feats)} {args.split} {what} | {int((lab != lone_lab).sum())} / '
+              f'{int((lab != batch_lab).sum())} | {100 * (lab == true).mean():.2f} / '
+              f'{100 * (lone_lab == true).mean():.2f} / '
+              f'{100 * (batch_lab == true).mean():.2f} % | '
+              f'{float((lone_prob - prob).abs().max()):.2g} / '
+              f'{float((batch_prob - prob).abs().max()):.2g} | '
               f'{float((lone_nov - nov).abs().max()):.2g} | {gate_diff} |', flush=True)
 
 

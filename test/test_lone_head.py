@@ -35,6 +35,7 @@ def test_the_shipped_bank_answers_a_lone_query_as_a_batch_does() -> None:
     rng = np.random.default_rng(5)
     feats = rec.encode([place_in_sensor_frame(x, rng, single_view=view)
                         for view in (False, True) for x in objects.xyz])
+    clf.compiled_finish = False
     with torch.no_grad():
         prob, novelty, gate = clf._evaluate(feats)          # a batch: the torch path
     lone_prob, lone_novelty, lone_gate = _one_by_one(clf, feats)
@@ -69,6 +70,7 @@ def test_whitened_lda_head_absent_class_and_vote_bias() -> None:
                                    + rng.normal(0, 0.05, (12, 64)).astype(np.float32))
     for b in (bank, plain):
         clf = Classifier(b)
+        clf.compiled_finish = False                         # batches: the torch head
         assert clf.lone is not None
         if b is bank:
             assert clf.lone.lda_coef is not None and clf.lone.embed.whiten is not None
@@ -82,6 +84,7 @@ def test_whitened_lda_head_absent_class_and_vote_bias() -> None:
     clf = Classifier(bank)
     clf.vote_bias = torch.linspace(-1.0, 1.0, classes)
     clf.lone = LoneSection.build(clf)
+    clf.compiled_finish = False
     prob, _ = clf.evaluate(raw)
     lone_prob, _, _ = _one_by_one(clf, raw)
     torch.testing.assert_close(lone_prob, prob, atol=2e-6, rtol=0)
@@ -96,3 +99,35 @@ def test_what_the_compiled_path_does_not_cover_keeps_the_torch_path() -> None:
     clf.head.ridge_coef = clf.head.ridge_coef + 1e-12      # no longer float32 values
     assert LoneSection.build(clf) is None
     assert LoneSection.build(Classifier(bank)) is not None
+
+
+def test_a_batch_is_finished_in_compiled_code_as_the_torch_head_finishes_it() -> None:
+    """The shipped bank's exact section: batch rows after the scan through pgn_head_finish."""
+    rec = Recognizer.from_bank(None)
+    clf = rec.classifier
+    objects = load_demo_objects()
+    rng = np.random.default_rng(11)
+    feats = rec.encode([place_in_sensor_frame(x, rng, single_view=view)
+                        for view in (False, True) for x in objects.xyz])
+    with torch.no_grad():
+        clf.compiled_finish = False
+        ref_prob, ref_novelty = clf._section(feats)
+        clf.compiled_finish = True
+        prob, novelty = clf._section(feats)
+        full = clf._evaluate(feats)
+        clf.compiled_finish = False
+        full_ref = clf._evaluate(feats)
+    # the same formulas; sums in double on both sides, the exponentials within 2 ulp
+    torch.testing.assert_close(prob, ref_prob, atol=1e-6, rtol=0)
+    torch.testing.assert_close(novelty, ref_novelty, atol=1e-7, rtol=0)
+    assert torch.equal(prob.argmax(1), ref_prob.argmax(1))
+    assert not torch.equal(prob, ref_prob)        # the compiled path ran, not the torch one
+    torch.testing.assert_close(full[0], full_ref[0], atol=1e-6, rtol=0)
+    # a row's result does not depend on its batch-mates
+    lone = clf.lone
+    z = clf.transform(feats[:6])
+    sims = clf.search.similarities(clf.head.vote_space(z)).numpy()
+    whole, _ = lone.finish_rows(sims, z.numpy())
+    for b in range(6):
+        one, _ = lone.finish_rows(sims[b:b + 1], z[b:b + 1].numpy())
+        assert np.array_equal(one[0], whole[b])

@@ -61,4 +61,8 @@ def test_bench_node_reports_rates_latency_and_memory(tiny_bank: Path) -> None:
     assert steady['node_taken'] == steady['sent']
     assert burst['answered'] <= burst['node_taken'] <= burst['sent']
     assert all(r['node_peak_rss_mb'] > 50 for r in rows)
+    # What the publishing client itself took while sending (a CPU fraction of this box):
+    # more under the burst than at 20/s, and well under a CPU (answers are taken off the
+    # executor, sends sleep between slots).
+    assert 0 < steady['client_cpus'] < burst['client_cpus'] < 0.9, rows
     assert 'burst' in format_rows(rows)

@@ -26,7 +26,8 @@ object than to any built one, and renormalises; with no taught class nothing mov
 
 A lone query (a batch of one, on the CPU with the compiled kernels) takes bank/lone.py's
 path: the same formulas in a few C calls instead of ~40 torch ops, which after a sensor's
-idle gap each started cold. Batches take the torch path.
+idle gap each started cold. Batches take the torch path up to the exact scan's cosines; an
+exact section then finishes each row in that compiled code too (`compiled_finish`).
 
 Search (`search=`): 'exact' compares every query with every bank entry (torch);
 'indexed' uses bank/search.py's two-stage search (4-bit coarse scan, exact rescoring of
@@ -211,6 +212,9 @@ class Classifier:
             else bank.objects.shift_for(bank)
         # A lone query's compiled path (bank/lone.py), where every part of this bank has one.
         self.lone = LoneSection.build(self)
+        # A batch's rows finished by it after the exact scan (False: the torch head, which
+        # the tests hold it to).
+        self.compiled_finish = True
         self.lone_gate = None
         if self.lone is not None and self.views is not None and self.gate is not None:
             self.lone_gate = LoneGate(self.lone.lib, self.gate) if self.views.lone else None
@@ -286,6 +290,15 @@ class Classifier:
 
     def _section(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The section's own head: (B, D) raw features -> probability (B, C), novelty (B,)."""
+        lone = self.lone
+        if (self.compiled_finish and lone is not None and lone.index is None
+                and isinstance(self.search, ExactSearch) and len(features) > 1):
+            z, x = self.transform.both(features) if self.head.lda_wide \
+                else (self.transform(features), None)
+            sims = self.search.similarities(self.head.vote_space(z))
+            prob, novelty = lone.finish_rows(sims.numpy(), (x if self.head.lda_wide
+                                                            else z).numpy())
+            return torch.from_numpy(prob), torch.from_numpy(novelty)
         if not self.head.lda_wide:
             return self.head.evaluate_with(self.transform(features), self.search, self.vote_bias)
         z, x = self.transform.both(features)         # one standardisation for vote and LDA

@@ -10,7 +10,8 @@ formulas: probabilities within ~1e-6 of the torch path, labels the same.
 
 `LoneSection.build` returns None for what it does not cover (off the CPU, no kernels, a
 search without compiled rows, a ridge head whose coefficients are not float32 values); the
-classifier then keeps the torch path. Batches always take the torch path.
+classifier then keeps the torch path. A batch takes the torch path up to its exact scan's
+cosines, then `finish_rows` (bank/classifier.py `compiled_finish`).
 """
 
 from __future__ import annotations
@@ -119,17 +120,38 @@ class LoneSection:
             rows = self.index.candidates_many(u[None])[0]
             sims = self.index._dots(u, rows)
             labels = np.ascontiguousarray(self.labels[rows])
+        prob, novelty = np.empty(self.num_classes, np.float32), np.empty(1, np.float32)
+        self._finish(sims, labels, xs if self.lda_wide else z, prob, novelty)
+        return prob, float(novelty[0])
+
+    def finish_rows(self, sims: np.ndarray, lda_in: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A batch's head after its exact scan -> probability (B, C), novelty (B,).
+
+        sims (B, N): cosines to every entry (the search's own scan, in the section's row
+        order); lda_in (B, d): the LDA's input rows (standardised for a wide LDA, else
+        transformed). Each row as `evaluate` finishes a lone query: the torch path's ~20
+        ops over (B, N) took ~0.15 ms a row at the shipped bank, this one ~0.08
+        (BENCHMARKS.md, "third session of 2026-12-05"). Exact sections only (index None).
+        """
+        sims = np.ascontiguousarray(sims, dtype=np.float32)
+        lda_in = np.ascontiguousarray(lda_in, dtype=np.float32)
+        prob = np.empty((len(sims), self.num_classes), np.float32)
+        novelty = np.empty(len(sims), np.float32)
+        for b in range(len(sims)):
+            self._finish(sims[b], self.labels, lda_in[b], prob[b], novelty[b:b + 1])
+        return prob, novelty
+
+    def _finish(self, sims: np.ndarray, labels: np.ndarray, lda_in: np.ndarray,
+                prob: np.ndarray, novelty: np.ndarray) -> None:
+        """pgn_head_finish of one query's cosines into prob (C,) and novelty (1,)."""
         c = self.num_classes
-        prob, novelty = np.empty(c, np.float32), np.empty(1, np.float32)
-        work = np.empty(3 * c, np.float64)
-        lda_in = xs if self.lda_wide else z
+        work = np.empty(5 * c, np.float64)
         self.lib.pgn_head_finish(
             sims.ctypes.data, labels.ctypes.data, len(sims), c, self.counts.ctypes.data,
             self.gamma, _ptr(self.ridge), self.ridge_gamma, self.ridge_weight,
             _ptr(self.vote_bias), lda_in.ctypes.data, len(lda_in), _ptr(self.lda_coef),
             _ptr(self.lda_bias), self.fusion_weight, self.temperature, work.ctypes.data,
             prob.ctypes.data, novelty.ctypes.data)
-        return prob, float(novelty[0])
 
 
 class LoneGate:

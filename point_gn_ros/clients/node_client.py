@@ -160,7 +160,14 @@ class Answer:
 
 
 class Client:
-    """An rclpy participant that publishes clouds and collects the node's answers by stamp."""
+    """An rclpy participant that publishes clouds and collects the node's answers by stamp.
+
+    Answers are taken by a thread of their own (node/intake.py's `Intake`, as the node takes
+    its input), not by the executor: rclpy's executor costs ~0.1-0.2 ms of Python a spin,
+    and a benchmark that spun it between 1,000 sends a second took ~0.3 of a CPU from the
+    node it measured (BENCHMARKS.md, "third session of 2026-12-05"). `answers` fills while
+    the caller sleeps or spins; the executor serves the other subscriptions.
+    """
 
     def __init__(self, domain_id: int, topic: str, reliable: bool = True,
                  name: str = 'point_gn_client') -> None:
@@ -182,12 +189,17 @@ class Client:
         self.publisher = self.node.create_publisher(PointCloud2, topic, qos)
         self.answers: dict[tuple[int, int], Answer] = {}
         self.class_names: list[str] | None = None
-        # The node's own counters (its /diagnostics pipeline status) and when they came.
+        # The node's own counters (its /diagnostics pipeline status) and the report's stamp
+        # (the node's clock: this machine's system time, s).
         self.counters: dict[str, str] = {}
-        self.counters_received = 0.0
-        self.node.create_subscription(
+        self.counters_stamp = 0.0
+        from point_gn_ros.node.intake import Intake, NotForExecutors
+        answers = self.node.create_subscription(
             PointCloud2, f'{NODE_FQN}/classifications', self._on_answer,
-            QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+            QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE),
+            callback_group=NotForExecutors())
+        self._intake = Intake(self.context, [answers], lambda _, msg: self._on_answer(msg),
+                              self._on_intake_error)
         self.node.create_subscription(
             String, f'{NODE_FQN}/class_names', self._on_names,
             QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -200,17 +212,26 @@ class Client:
         for status in msg.status:
             if status.name == f'{NODE_FQN}: pipeline':
                 self.counters = {kv.key: kv.value for kv in status.values}
-                self.counters_received = time.monotonic()
+                self.counters_stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
 
     def fresh_counters(self, timeout: float = 3.0) -> dict[str, str]:
-        """The node's counters from a report sent after this call ({} if none came)."""
-        since = time.monotonic()
-        self.spin_until(lambda: self.counters_received > since, timeout)
-        return self.counters if self.counters_received > since else {}
+        """The node's counters from a report sent after this call ({} if none came).
+
+        By the report's stamp, not its arrival: reports queued while the executor was not
+        spun arrive first, and they are older than the call.
+        """
+        since = time.time()
+        self.spin_until(lambda: self.counters_stamp > since, timeout)
+        return self.counters if self.counters_stamp > since else {}
 
     def _on_answer(self, msg: Any) -> None:
         self.answers[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = Answer(
             msg, time.monotonic())
+
+    @staticmethod
+    def _on_intake_error(exc: Exception) -> None:
+        print(f'point_gn client: taking an answer failed: {type(exc).__name__}: {exc}',
+              file=sys.stderr, flush=True)
 
     def _on_names(self, msg: Any) -> None:
         self.class_names = msg.data.split('\n')
@@ -246,6 +267,7 @@ class Client:
         return key, sent
 
     def close(self) -> None:
+        self._intake.stop()                 # first: it waits on the answer subscription
         self.executor.shutdown()
         self.node.destroy_node()
         self.context.try_shutdown()

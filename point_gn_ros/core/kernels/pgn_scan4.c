@@ -12,6 +12,7 @@
  * pgn_scan_i4_multi: the same for nq queries, out (nq, n), the rows read once per block.
  */
 #include <stdint.h>
+#include <stdlib.h>
 #if defined(__AVX512BW__) || defined(__AVX2__)
 #include <immintrin.h>
 #endif
@@ -54,30 +55,109 @@ static inline __m512i dot_u8s8(__m512i acc, __m512i u, __m512i q) {
 #endif
 }
 
-static void scan_avx512(const uint8_t *packed, int64_t n, int64_t r, const int8_t *q,
-                        int32_t *out) {
-    const int64_t p = r / 2, nc = (p + CHUNK - 1) / CHUNK;
-    __m512i qlo[MAX_CHUNKS], qhi[MAX_CHUNKS];
+/* A query's chunks (its int8 slices against each chunk's low and high nibbles), set up
+ * once per query, not per block of rows. */
+typedef struct {
+    __m512i lo[MAX_CHUNKS], hi[MAX_CHUNKS];
     __mmask64 mask[MAX_CHUNKS];
-    for (int64_t c = 0; c < nc; ++c) {
+    int64_t nc;
+    int32_t offset;
+} q4_t;
+
+static void q4_prepare(q4_t *s, const int8_t *q, int64_t r) {
+    const int64_t p = r / 2;
+    s->nc = (p + CHUNK - 1) / CHUNK;
+    for (int64_t c = 0; c < s->nc; ++c) {
         const int64_t b = c * CHUNK, len = p - b < CHUNK ? p - b : CHUNK;
-        mask[c] = len == CHUNK ? ~(__mmask64)0 : (((__mmask64)1 << len) - 1);
-        qlo[c] = _mm512_maskz_loadu_epi8(mask[c], q + 2 * b);
-        qhi[c] = _mm512_maskz_loadu_epi8(mask[c], q + 2 * b + len);
+        s->mask[c] = len == CHUNK ? ~(__mmask64)0 : (((__mmask64)1 << len) - 1);
+        s->lo[c] = _mm512_maskz_loadu_epi8(s->mask[c], q + 2 * b);
+        s->hi[c] = _mm512_maskz_loadu_epi8(s->mask[c], q + 2 * b + len);
     }
-    const int32_t offset = 8 * query_sum(q, r);
+    s->offset = 8 * query_sum(q, r);
+}
+
+/* One row's 16 lane partial sums over nc chunks; lo, hi, mask: the query's (q4_t). */
+static inline __attribute__((always_inline)) __m512i row_acc(
+        const uint8_t *row, int64_t nc, const __m512i *lo, const __m512i *hi,
+        const __mmask64 *mask) {
     const __m512i nib = _mm512_set1_epi8(15);
-    for (int64_t i = 0; i < n; ++i) {
-        const uint8_t *row = packed + i * p;
-        if ((i + 1) * p + PREFETCH_AHEAD < n * p)
-            for (int64_t o = 0; o < p; o += 64) __builtin_prefetch(row + PREFETCH_AHEAD + o);
-        __m512i acc = _mm512_setzero_si512(), acc2 = acc;
-        for (int64_t c = 0; c < nc; ++c) {
-            const __m512i v = _mm512_maskz_loadu_epi8(mask[c], row + c * CHUNK);
-            acc = dot_u8s8(acc, _mm512_and_si512(v, nib), qlo[c]);
-            acc2 = dot_u8s8(acc2, _mm512_and_si512(_mm512_srli_epi16(v, 4), nib), qhi[c]);
-        }
-        out[i] = _mm512_reduce_add_epi32(_mm512_add_epi32(acc, acc2)) - offset;
+    __m512i acc = _mm512_setzero_si512();
+    for (int64_t c = 0; c < nc; ++c) {
+        const __m512i v = _mm512_maskz_loadu_epi8(mask[c], row + c * CHUNK);
+        acc = dot_u8s8(acc, _mm512_and_si512(v, nib), lo[c]);
+        acc = dot_u8s8(acc, _mm512_and_si512(_mm512_srli_epi16(v, 4), nib), hi[c]);
+    }
+    return acc;
+}
+
+static inline __m512 addi(__m512 a, __m512 b) {
+    return _mm512_castsi512_ps(_mm512_add_epi32(_mm512_castps_si512(a), _mm512_castps_si512(b)));
+}
+
+/* 16 rows' lane partials a[k] -> lane k holds row k's sum: a halving tree of shuffles and
+ * adds (as the stage-1 lanes kernel's red16), ~2 operations a row instead of a horizontal
+ * sum of ~9 for each. Integer sums: the same totals in any order. */
+static inline __m512i sum16(const __m512i *a) {
+    __m512 s[8];
+    for (int i = 0; i < 8; ++i) {
+        const __m512 x = _mm512_castsi512_ps(a[2 * i]), y = _mm512_castsi512_ps(a[2 * i + 1]);
+        s[i] = addi(_mm512_shuffle_f32x4(x, y, 0x44), _mm512_shuffle_f32x4(x, y, 0xEE));
+    }
+    for (int i = 0; i < 4; ++i)
+        s[i] = addi(_mm512_shuffle_f32x4(s[2 * i], s[2 * i + 1], 0x88),
+                    _mm512_shuffle_f32x4(s[2 * i], s[2 * i + 1], 0xDD));
+    for (int i = 0; i < 2; ++i)
+        s[i] = addi(_mm512_shuffle_ps(s[2 * i], s[2 * i + 1], 0x44),
+                    _mm512_shuffle_ps(s[2 * i], s[2 * i + 1], 0xEE));
+    const __m512 t = addi(_mm512_shuffle_ps(s[0], s[1], 0x88), _mm512_shuffle_ps(s[0], s[1], 0xDD));
+    return _mm512_castps_si512(_mm512_permutexvar_ps(
+        _mm512_setr_epi32(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15), t));
+}
+
+/* Rows in groups of 16 (sum16), NC chunks a row: for NC <= 4 the query's chunks are held
+ * in registers (NC a constant; read through s they were reloaded for every row, and loads
+ * were what the loop waited on), NC = 0: s->nc chunks read through s. */
+#define PGN_SCAN4(NAME, NC)                                                               \
+    static void NAME(const uint8_t *packed, int64_t n, int64_t p, const q4_t *s,          \
+                     int32_t *out) {                                                      \
+        const int64_t nc = NC ? NC : s->nc;                                               \
+        __m512i lo_[NC ? NC : 1], hi_[NC ? NC : 1];                                        \
+        __mmask64 mk_[NC ? NC : 1];                                                       \
+        for (int64_t c = 0; c < (NC ? NC : 0); ++c) {                                     \
+            lo_[c] = s->lo[c]; hi_[c] = s->hi[c]; mk_[c] = s->mask[c];                    \
+        }                                                                                 \
+        const __m512i *lo = NC ? lo_ : s->lo, *hi = NC ? hi_ : s->hi;                     \
+        const __mmask64 *mask = NC ? mk_ : s->mask;                                       \
+        const __m512i off = _mm512_set1_epi32(s->offset);                                 \
+        int64_t i = 0;                                                                    \
+        for (; i + 16 <= n; i += 16) {                                                    \
+            const uint8_t *rows = packed + i * p;                                         \
+            if ((i + 16) * p + PREFETCH_AHEAD < n * p)                                    \
+                for (int64_t o = 0; o < 16 * p; o += 64)                                  \
+                    __builtin_prefetch(rows + PREFETCH_AHEAD + o);                        \
+            __m512i acc[16];                                                              \
+            for (int k = 0; k < 16; ++k) acc[k] = row_acc(rows + k * p, nc, lo, hi, mask); \
+            _mm512_storeu_si512((void *)(out + i), _mm512_sub_epi32(sum16(acc), off));   \
+        }                                                                                 \
+        for (; i < n; ++i)                                                                \
+            out[i] = _mm512_reduce_add_epi32(row_acc(packed + i * p, nc, lo, hi, mask))   \
+                     - s->offset;                                                         \
+    }
+PGN_SCAN4(scan_nc1, 1)
+PGN_SCAN4(scan_nc2, 2)
+PGN_SCAN4(scan_nc3, 3)
+PGN_SCAN4(scan_nc4, 4)
+PGN_SCAN4(scan_any, 0)
+#undef PGN_SCAN4
+
+static void scan_avx512(const uint8_t *packed, int64_t n, int64_t p, const q4_t *s,
+                        int32_t *out) {
+    switch (s->nc) {
+        case 1: scan_nc1(packed, n, p, s, out); break;
+        case 2: scan_nc2(packed, n, p, s, out); break;
+        case 3: scan_nc3(packed, n, p, s, out); break;
+        case 4: scan_nc4(packed, n, p, s, out); break;
+        default: scan_any(packed, n, p, s, out); break;
     }
 }
 #elif defined(__AVX2__)
@@ -127,7 +207,9 @@ static void scan_avx2(const uint8_t *packed, int64_t n, int64_t r, const int8_t 
 void pgn_scan_i4(const uint8_t *packed, int64_t n, int64_t r, const int8_t *q, int32_t *out) {
     if (r % 32 == 0 && r / 2 <= MAX_CHUNKS * CHUNK) {
 #if defined(__AVX512BW__)
-        scan_avx512(packed, n, r, q, out);
+        q4_t s;
+        q4_prepare(&s, q, r);
+        scan_avx512(packed, n, r / 2, &s, out);
         return;
 #elif defined(__AVX2__)
         scan_avx2(packed, n, r, q, out);
@@ -146,6 +228,20 @@ void pgn_scan_i4_multi(const uint8_t *packed, int64_t n, int64_t r, const int8_t
         pgn_scan_i4(packed, n, r, q, out);
         return;
     }
+#if defined(__AVX512BW__)
+    q4_t *s = r % 32 == 0 && r / 2 <= MAX_CHUNKS * CHUNK ? aligned_alloc(64, sizeof(q4_t) * nq)
+                                                         : NULL;
+    if (s != NULL) {   /* each query set up once */
+        for (int64_t b = 0; b < nq; ++b) q4_prepare(&s[b], q + b * r, r);
+        for (int64_t i0 = 0; i0 < n; i0 += SCAN4_BLOCK) {
+            const int64_t m = n - i0 < SCAN4_BLOCK ? n - i0 : SCAN4_BLOCK;
+            for (int64_t b = 0; b < nq; ++b)
+                scan_avx512(packed + i0 * (r / 2), m, r / 2, &s[b], out + b * n + i0);
+        }
+        free(s);
+        return;
+    }
+#endif
     for (int64_t i0 = 0; i0 < n; i0 += SCAN4_BLOCK) {
         const int64_t m = n - i0 < SCAN4_BLOCK ? n - i0 : SCAN4_BLOCK;
         for (int64_t b = 0; b < nq; ++b)
