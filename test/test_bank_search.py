@@ -79,10 +79,18 @@ def test_top_m_kernel_ties_to_lowest_index() -> None:
     if lib is None:
         pytest.skip(f'compiled kernels unavailable: {kernels.last_error()}')
     rng = np.random.default_rng(9)
-    s = rng.integers(-50, 50, 10_000).astype(np.int32)
-    for m in (1, 37, 500, 9_999):
-        idx = np.empty(m, np.int32)
-        keys = np.empty(len(s), np.int64)
-        got = lib.pgn_top_m(s.ctypes.data, len(s), m, idx.ctypes.data, keys.ctypes.data)
-        expect = np.lexsort((np.arange(len(s)), -s))[:m]  # by score desc, then index
-        assert got == m and sorted(idx.tolist()) == sorted(expect.tolist())
+    # many ties (100 values); a coarse pass's spread (80k scores, a long upper tail); the
+    # extremes of int32; all equal
+    cases = [rng.integers(-50, 50, 10_000), np.rint(rng.standard_t(5, 80_000) * 4000),
+             rng.choice([np.iinfo(np.int32).min, np.iinfo(np.int32).max, 0], 3_000),
+             np.full(1_000, 7)]
+    for s in cases:
+        s = s.astype(np.int32)
+        for m in (1, 37, 500, min(1_024, len(s) - 2), len(s) - 1):
+            idx = np.empty(m, np.int32)
+            keys = np.empty(len(s), np.int64)
+            got = lib.pgn_top_m(s.ctypes.data, len(s), m, idx.ctypes.data, keys.ctypes.data)
+            # by score desc, then index (negated in int64: -INT32_MIN overflows int32)
+            expect = np.lexsort((np.arange(len(s)), -s.astype(np.int64)))[:m]
+            # exactly those, in ascending index order (numpy's pass in search.py gives that)
+            assert got == m and idx.tolist() == sorted(expect.tolist()), (len(s), m)
