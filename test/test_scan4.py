@@ -18,9 +18,10 @@ import pytest
 from point_gn_ros.bank.index_basis import pack_codes, unpack_codes
 from point_gn_ros.core import kernels
 
-# widths: one 16-byte chunk, a 48-byte one, 64 + 64 + 16 (the scan section's 288), 5 full
-# chunks, and 2,080 (beyond the SIMD paths' 2,048: the plain loop)
-_WIDTHS = (32, 96, 288, 640, 2080)
+# widths: one 16-byte chunk, a 48-byte one, 2 full chunks, 64 + 64 + 16 (the scan
+# section's 288), 4 full chunks, 5 (more than a batch's split-nibble blocks take), and
+# 2,080 (beyond the SIMD paths' 2,048: the plain loop)
+_WIDTHS = (32, 96, 256, 288, 512, 640, 2080)
 
 
 def _cases(rng: np.random.Generator, r: int, n: int = 301, nq: int = 5):
