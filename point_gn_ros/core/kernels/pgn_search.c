@@ -144,7 +144,8 @@ static int64_t count_ge(const int32_t *s, int64_t n, int32_t t) {
 static int64_t indices_ge(const int32_t *s, int64_t n, int32_t t, int32_t *out) {
     int64_t k = 0, i = 0;
 #if defined(__AVX512F__)
-    /* 16 at a time, compressed into a register and stored whole (out has 16 of slack) */
+    /* 16 at a time, compressed into a register and stored whole: a store at out + k with
+     * k <= i writes below out + i + 16 <= out + n, so out needs no slack past n */
     const __m512i vt = _mm512_set1_epi32(t), step = _mm512_set1_epi32(16);
     __m512i iv = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
     for (; i + 16 <= n; i += 16) {
@@ -167,7 +168,8 @@ static int64_t indices_ge(const int32_t *s, int64_t n, int32_t t, int32_t *out) 
  * indices at or above it are gathered in one pass, and the exact m-th value is found among
  * those few by bisection. Every pass is a vector compare over the scores: the histogram
  * and sort this replaces took ~0.1 ms a query at the shipped scan section's 78,744 entries.
- * keys: n int64 of scratch (the gathered int32 indices are kept there). Returns min(m, n). */
+ * keys: n int64 of scratch (the gathered indices and their scores, n int32 each).
+ * Returns min(m, n). */
 int64_t pgn_top_m(const int32_t *s, int64_t n, int64_t m, int32_t *idx, int64_t *keys) {
     if (m >= n) {
         for (int64_t i = 0; i < n; ++i) idx[i] = (int32_t)i;
@@ -177,7 +179,7 @@ int64_t pgn_top_m(const int32_t *s, int64_t n, int64_t m, int32_t *idx, int64_t 
     int32_t lo = s[0], hi = s[0];
 #pragma omp simd reduction(min:lo) reduction(max:hi)
     for (int64_t i = 0; i < n; ++i) { lo = s[i] < lo ? s[i] : lo; hi = s[i] > hi ? s[i] : hi; }
-    /* invariant: count(s >= lo) = clo >= m > count(s >= hi + 1) = chi */
+    /* invariant: count(s >= lo) = clo >= m > chi = count(s >= top) */
     int64_t clo = n, chi = 0;
     int64_t top = hi + 1LL;
     const int64_t want = m + m / 4;      /* aim a little above m: the gather stays small */
