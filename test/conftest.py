@@ -125,14 +125,17 @@ KERNEL_BUILDS = {'portable': ([], set()),
                                         '-mno-avx512vnni'], {'avx512f', 'avx512bw', 'avx512vl'}),
                  'avx512 vnni': (['-mavx512f', '-mavx512bw', '-mavx512vl', '-mavx512vnni'],
                                  {'avx512f', 'avx512bw', 'avx512vl', 'avx512_vnni'}),
-                 # pgn_knn.c's 16-bit codes (Ice Lake, Zen 4 and later)
+                 # pgn_knn16.c's 16-bit codes (Ice Lake, Zen 4 and later)
                  'avx512 vbmi2': (['-mavx512f', '-mavx512bw', '-mavx512vl', '-mavx512vbmi2'],
                                   {'avx512f', 'avx512bw', 'avx512vl', 'avx512_vbmi2'})}
 
 
-def kernel_build(source: str, build: str, out_dir: Path, extra: tuple[str, ...] = ()
-                 ) -> ctypes.CDLL:
-    """core/kernels/SOURCE compiled alone as KERNEL_BUILDS[build]; skips where it cannot run."""
+def kernel_build(source: str | tuple[str, ...], build: str, out_dir: Path,
+                 extra: tuple[str, ...] = ()) -> ctypes.CDLL:
+    """core/kernels/SOURCE built alone as KERNEL_BUILDS[build]; skips where it cannot run.
+
+    source: one file, or a few linked into one library.
+    """
     from point_gn_ros.core import kernels
 
     flags, needs = KERNEL_BUILDS[build]
@@ -143,8 +146,10 @@ def kernel_build(source: str, build: str, out_dir: Path, extra: tuple[str, ...] 
            if line.startswith(('flags', 'Features')) for flag in line.split(':', 1)[1].split()}
     if needs - cpu:
         pytest.skip(f'this CPU cannot run the {build} build (lacks {sorted(needs - cpu)})')
-    so = out_dir / f'{Path(source).stem}.so'
+    sources = (source,) if isinstance(source, str) else source
+    src_dir = Path(kernels.__file__).resolve().parent
+    so = out_dir / f'{Path(sources[0]).stem}.so'
     subprocess.run([cc, '-O3', '-fPIC', '-shared', '-std=gnu11', *extra, *flags,
-                    str(Path(kernels.__file__).resolve().parent / source), '-o', str(so)],
+                    *(str(src_dir / s) for s in sources), '-o', str(so)],
                    check=True, capture_output=True)
     return ctypes.CDLL(str(so))

@@ -87,19 +87,24 @@ def test_every_simd_build_of_fps_ties_like_the_oracle(build: str, tmp_path: Path
 
 @pytest.mark.parametrize('build', sorted(KERNEL_BUILDS))
 def test_every_simd_build_of_knn_ties_like_the_oracle(build: str, tmp_path: Path) -> None:
-    # pgn_knn.c counts and splits on floats (portable, AVX2, AVX-512) or on 16-bit codes
-    # (AVX-512 BW + VBMI2, 64 <= n): each build that this CPU runs, against the oracle's
+    # pgn_knn.c counts and splits on floats (portable, AVX2, AVX-512), pgn_knn16.c on 16-bit
+    # codes (AVX-512 BW + VBMI2, 64 <= n): each build that this CPU runs, against the oracle's
     # stable sort, with exact ties, tails past the vector blocks, a middle past 32 keys
     # (duplicates) and centres whose k-th distances differ from their predecessor's guess
-    lib = kernel_build('pgn_knn.c', build, tmp_path,
+    lib = kernel_build(('pgn_knn.c', 'pgn_knn16.c'), build, tmp_path,
                        ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.pgn_knn.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, ptr, i64, i64, ptr, ptr, ptr,
                             ctypes.c_float]
+    lib.pgn_knn_in.argtypes = [*lib.pgn_knn.argtypes, ptr]
+    lib.pgn_knn_slab.argtypes = [ptr, ptr, ptr, i64, i64, ptr, ptr]
+    lib.pgn_knn_slab_floats.restype = i64
+    lib.pgn_knn_slab_floats.argtypes = [i64]
+    slab = ctypes.create_string_buffer(256)       # a knn_slab (72 bytes on x86-64)
     rng = np.random.default_rng(3)
     for n, k, kind in ((1024, 120, 'normal'), (1000, 120, 'grid'), (517, 120, 'duplicated'),
                        (512, 200, 'normal'), (63, 20, 'normal'), (64, 63, 'grid'),
-                       (100, 1, 'duplicated'), (2100, 7, 'normal')):
+                       (100, 1, 'duplicated'), (2100, 7, 'normal'), (800, 120, 'duplicated')):
         cloud = _cloud(n, 8)
         if kind == 'grid':
             cloud = np.round(cloud * 2) / 2
@@ -115,14 +120,28 @@ def test_every_simd_build_of_knn_ties_like_the_oracle(build: str, tmp_path: Path
         dist, keys = np.empty(n, np.float32), np.empty(2 * n + 32, np.uint64)
         # the guess at the k-th distance (0: computed from the points) only steers the
         # counting: far too small or too large, the rows must not change
+        # the points sorted along an axis (the 16-bit codes' builds, n >= 6 k): a centre
+        # searches its slab, or all points when fewer than k of them are near enough
+        buf = np.empty(lib.pgn_knn_slab_floats(n), np.float32)
+        sorted_ = lib.pgn_knn_slab(p[0].ctypes.data, p[1].ctypes.data, p[2].ctypes.data, n, k,
+                                   buf.ctypes.data, slab)
+        assert bool(sorted_) == ('vbmi2' in build and n >= 6 * k)
         for guess in (0.0, 1e-6, 50.0):
-            lib.pgn_knn(p[0].ctypes.data, p[1].ctypes.data, p[2].ctypes.data, n,
-                        c[0].ctypes.data, c[1].ctypes.data, c[2].ctypes.data, len(centres), k,
-                        nb.ctypes.data, dist.ctypes.data, keys.ctypes.data, guess)
-            got = np.sort(nb[:len(centres) * k].reshape(-1, k), axis=1)
-            np.testing.assert_array_equal(got, np.sort(want, axis=1),
-                                          err_msg=f'{build}, {n} points, k {k}, {kind}, '
-                                                  f'guess {guess}')
+            for with_slab in (False, True) if sorted_ else (False,):
+                lib.pgn_knn_in(p[0].ctypes.data, p[1].ctypes.data, p[2].ctypes.data, n,
+                               c[0].ctypes.data, c[1].ctypes.data, c[2].ctypes.data,
+                               len(centres), k, nb.ctypes.data, dist.ctypes.data,
+                               keys.ctypes.data, guess, slab if with_slab else None)
+                rows = nb[:len(centres) * k].reshape(-1, k)
+                np.testing.assert_array_equal(np.sort(rows, axis=1), np.sort(want, axis=1),
+                                              err_msg=f'{build}, {n} points, k {k}, {kind}, '
+                                                      f'guess {guess}, slab {with_slab}')
+                if guess == 0.0 and not with_slab:
+                    unsorted = rows.copy()
+                elif guess == 0.0 and k > 1:
+                    # the slab was searched: its rows come in the slab's order
+                    assert not np.array_equal(rows, unsorted), f'{build}, {n}, {kind}'
+
 
 
 def test_fps_start_is_geometric_so_order_does_not_matter() -> None:

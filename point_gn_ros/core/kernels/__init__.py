@@ -11,7 +11,8 @@ AVX-512 (pgn_avx512.c, pgn_avx512_sep.c, pgn_avx512_lanes.c), AVX2 + FMA (pgn_av
 pgn_avx2_d18.c, pgn_avx2_lanes.c; CPUs without AVX-512) and portable C; `simd_width()` says
 which one runs.
 
-pgn_geom.c, pgn_knn.c, pgn_project.c and pgn_prepare.c are compiled without fast-math and with
+pgn_geom.c, pgn_knn.c, pgn_knn16.c, pgn_project.c and pgn_prepare.c are compiled without
+fast-math and with
 -ffp-contract=off (distances must round exactly like the oracle's; an index row's projection
 must not depend on the rows beside it; prepare()'s normalisation rounds like numpy's). The
 stage files (pgn_stage.c, pgn_avx512.c, pgn_avx512_sep.c, pgn_avx512_lanes.c, pgn_avx2.c,
@@ -43,6 +44,8 @@ import numpy as np
 _SRC_DIR = Path(__file__).resolve().parent
 _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_knn.c': ['-ffp-contract=off', '-fno-fast-math'],
+            # the kNN on 16-bit distance codes, and slabs (AVX-512 BW and VBMI2)
+            'pgn_knn16.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_stage.c': ['-ffast-math'],
             'pgn_avx512.c': ['-ffast-math'],
             'pgn_avx512_sep.c': ['-ffast-math'],  # the separable stages 2-4 on AVX-512
@@ -66,7 +69,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_head.c': ['-fno-fast-math'],
             'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
 # included by the C files: part of the snapshot and the cache key
-_HEADERS = ('pgn_common.h', 'pgn_geom.h', 'pgn_lone.h', 'pgn_phases.h')
+_HEADERS = ('pgn_common.h', 'pgn_geom.h', 'pgn_knn.h', 'pgn_lone.h', 'pgn_phases.h')
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
 ABI_VERSION = 2
 _log = logging.getLogger(__name__)

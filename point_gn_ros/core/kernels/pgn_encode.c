@@ -148,6 +148,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 #endif
     int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
     uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
+    float *slabbuf = xalloc(sizeof(float) * (size_t)pgn_knn_slab_floats(N));
     int rc = 0;
     TOC(11, 11);
 #if defined(__AVX512F__) || defined(PGN_AVX2)
@@ -157,7 +158,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     }
 #endif
     if (!featA || !featB || !xyz || !cxyz || !soa || !scratch || !vx || !vec || !ax || !cidx
-        || !nb || !keys || !pe || !sepb || !sepC || !sepT || !sepA || !sepE
+        || !nb || !keys || !slabbuf || !pe || !sepb || !sepC || !sepT || !sepA || !sepE
         || !parts || !oparts || !tails
         || (npar == 2 && (!pe2 || !vec2 || !sepA2 || !sepE2 || !scratch2 || !keys2))) {
         rc = -1;
@@ -202,6 +203,10 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         oj.knn = 1;
         oj.px = x; oj.py = y; oj.pz = z; oj.n = n;
         oj.guess = pgn_knn_guess(x, y, z, n, K);
+        knn_slab slab;
+#if !defined(PGN_NO_SLAB)
+        oj.slab = pgn_knn_slab(x, y, z, n, K, slabbuf, &slab) ? &slab : NULL;
+#endif
         oj.nb_out = nb;
         oj.dist[0] = scratch; oj.dist[1] = scratch2;
         oj.keys[0] = keys; oj.keys[1] = keys2;
@@ -365,7 +370,7 @@ done:
     free(vec); free(pe); free(ax); free(cidx); free(nb); free(keys);
     free(sepb); free(sepC); free(sepT); free(sepA); free(sepE);
     free(pe2); free(vec2); free(sepA2); free(sepE2); free(scratch2); free(keys2); free(tails);
-    free(parts); free(oparts); free(lscr);
+    free(parts); free(oparts); free(lscr); free(slabbuf);
     return rc;
 }
 

@@ -1,4 +1,4 @@
-/* The encoder's geometry, built without fast-math (pgn_geom.c: FPS; pgn_knn.c: kNN), for
+/* The encoder's geometry, built without fast-math (pgn_geom.c: FPS; pgn_knn*.c: kNN), for
  * its callers: pgn_phases.h (the encoder's steps) and pgn_prepare.c (midpoint_fill's
  * neighbours). Hashed with the sources for the kernel cache key (kernels/__init__.py).
  */
@@ -13,5 +13,21 @@ void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const fl
              const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
              uint64_t *keys, float guess);
 float pgn_knn_guess(const float *x, const float *y, const float *z, int64_t n, int64_t k);
+/* The points in buckets along one axis, for pgn_knn_in (pgn_knn_slab builds it). */
+typedef struct knn_slab {
+    int64_t n;
+    int axis;
+    const float *s[3];    /* x, y, z in that order */
+    const int32_t *idx;   /* each one's index among the points */
+    const uint16_t *idx16; /* the same as 16 bits, 32 more (0) past n */
+    float lo, sc;         /* bucket of v: (v - lo) sc, clamped to [0, 255] */
+    const int32_t *bend;  /* (256,) where each bucket's points end */
+} knn_slab;
+int64_t pgn_knn_slab_floats(int64_t n);
+int pgn_knn_slab(const float *x, const float *y, const float *z, int64_t n, int64_t k,
+                 float *buf, knn_slab *sl);
+void pgn_knn_in(const float *x, const float *y, const float *z, int64_t n, const float *cx,
+                const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb,
+                float *dist, uint64_t *keys, float guess, const knn_slab *sl);
 
 #endif

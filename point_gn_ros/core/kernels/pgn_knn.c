@@ -1,4 +1,6 @@
 /* Point-GN k nearest neighbours: each centre's k nearest points, ties to the lower index.
+ * This file: the search on float distances (any CPU), the guess and the entry points;
+ * pgn_knn16.c: the search on 16-bit codes (AVX-512 BW and VBMI2) and slabs.
  *
  * Compiled WITHOUT -ffast-math and with -ffp-contract=off, like pgn_geom.c: every distance
  * is rounded like the oracle's torch ops ((dx*dx + dy*dy) + dz*dz), so the choices are
@@ -11,35 +13,7 @@
 #include <immintrin.h>
 #endif
 
-#include "pgn_geom.h"
-
-/* Keys sort by (distance, index): distances are >= +0 so their bit patterns
- * order like the values. */
-static inline uint64_t make_key(float d, int64_t i) {
-    uint32_t b;
-    memcpy(&b, &d, 4);
-    return ((uint64_t)b << 32) | (uint64_t)(uint32_t)i;
-}
-
-/* Partition keys so that keys[0..k) are the k smallest (unordered). */
-static void select_k(uint64_t *keys, int64_t n, int64_t k) {
-    int64_t lo = 0, hi = n - 1;
-    while (hi > lo) {
-        /* median of three pivot */
-        int64_t mid = lo + (hi - lo) / 2;
-        uint64_t a = keys[lo], b = keys[mid], c = keys[hi];
-        uint64_t p = a < b ? (b < c ? b : (a < c ? c : a)) : (a < c ? a : (b < c ? c : b));
-        int64_t i = lo, j = hi;
-        while (i <= j) {
-            while (keys[i] < p) i++;
-            while (keys[j] > p) j--;
-            if (i <= j) { uint64_t t = keys[i]; keys[i] = keys[j]; keys[j] = t; i++; j--; }
-        }
-        if (k - 1 <= j) hi = j;
-        else if (k - 1 >= i) lo = i;
-        else return;
-    }
-}
+#include "pgn_knn.h"
 
 static inline int64_t count_le(const float *d, int64_t n, float tau) {
     int64_t c = 0, i = 0;
@@ -144,33 +118,6 @@ static int64_t split3(const float *d, int64_t n, float lo, float hi, int32_t *a,
     return ca;
 }
 
-/* The middle of a bracket, mk[0..nm) (keys by distance then index), into out[0..need):
- * the need smallest, unordered. A few by each key's rank among them (keys are distinct):
- * no sort, and a rank at or past need is written one place past out[need - 1] at most. */
-static void take_middle(uint64_t *mk, int64_t nm, int64_t need, int32_t *out) {
-    if (nm <= 32) {
-        int64_t w = 0;
-        for (int64_t j = 0; j < nm; ++j) {
-            int64_t r = 0;
-            for (int64_t i = 0; i < nm; ++i) r += mk[i] < mk[j];
-            out[w] = (int32_t)(mk[j] & 0xffffffffu);
-            w += r < need;
-        }
-    } else {
-        select_k(mk, nm, need);
-        for (int64_t j = 0; j < need; ++j) out[j] = (int32_t)(mk[j] & 0xffffffffu);
-    }
-}
-
-/* The next threshold inside a bracket (lo, hi) of distances (lo < 0: nothing below):
- * interpolated towards count k, never shrinking the bracket by less than 10 %. */
-static inline float bracket_tau(float lo, float hi, int64_t clo, int64_t chi, int64_t k) {
-    const float base = lo < 0.0f ? 0.0f : lo, w = hi - base;
-    float tau = base + w * (float)(((double)k - 0.5 - (double)clo) / (double)(chi - clo));
-    if (tau < base + 0.1f * w) tau = base + 0.1f * w;
-    if (tau > hi - 0.1f * w) tau = hi - 0.1f * w;
-    return tau;
-}
 
 /* pgn_knn's search on float distances (any CPU). */
 static void knn_f32(const float *x, const float *y, const float *z, int64_t n, const float *cx,
@@ -214,117 +161,6 @@ static void knn_f32(const float *x, const float *y, const float *z, int64_t n, c
     }
 }
 
-#if defined(__AVX512BW__) && defined(__AVX512VBMI2__)
-/* A distance's code: the top 16 bits of its float (d >= +0, so codes order like the
- * distances, ties and all), and the largest float with a given code. d <= code_top(q)
- * exactly when code(d) <= q. */
-static inline int32_t code_of(float f) {
-    uint32_t b;
-    memcpy(&b, &f, 4);
-    return (int32_t)(b >> 16);
-}
-static inline float code_top(int32_t q) {
-    const uint32_t b = ((uint32_t)q << 16) | 0xFFFFu;
-    float f;
-    memcpy(&f, &b, 4);
-    return f;
-}
-
-/* pgn_knn's search with the counting and the split on 16-bit codes (AVX-512 BW and VBMI2,
- * 64 <= n < 65536): 32 points a vector instead of 16, and the split compresses 16-bit
- * indices. Brackets are whole codes, so every count is exact; a code spans 1/128 of a
- * distance, so its middle stays small, and the middle is ordered by the float keys. */
-static void knn_codes(const float *x, const float *y, const float *z, int64_t n,
-                      const float *cx, const float *cy, const float *cz, int64_t s, int64_t k,
-                      int32_t *nb, float *dist, uint64_t *keys, float guess) {
-    const int64_t nv = (n + 31) / 32, R = (nv + 1) * 32;  /* codes a region (64-byte sized) */
-    uint16_t *h = (uint16_t *)keys, *a16 = h + R, *b16 = a16 + R;
-    uint64_t *mk = (uint64_t *)(b16 + R);   /* 6 R + 8 n bytes <= the 16 n + 256 given */
-    const __m512i one = _mm512_set1_epi32(1), step = _mm512_set1_epi16(32);
-    static const uint16_t lanes[32] = {0,  1,  2,  3,  4,  5,  6,  7,  8,  9,  10,
-                                       11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21,
-                                       22, 23, 24, 25, 26, 27, 28, 29, 30, 31};
-    const __m512i iota = _mm512_loadu_si512((const void *)lanes);
-    for (int64_t j = n; j < 32 * nv; ++j) h[j] = 0xFFFFu;  /* past n: above any distance */
-    for (int64_t c = 0; c < s; ++c) {
-        int32_t *row = nb + c * k;
-        const int32_t q1 = code_of(guess * 0.6f), q2 = code_of(guess * 1.6f);
-        const float f1 = code_top(q1), f2 = code_top(q2);
-        const __m512 px = _mm512_set1_ps(cx[c]), py = _mm512_set1_ps(cy[c]);
-        const __m512 pz = _mm512_set1_ps(cz[c]), g1 = _mm512_set1_ps(f1);
-        const __m512 g2 = _mm512_set1_ps(f2);
-        __m512i n1 = _mm512_setzero_si512(), n2 = n1;
-        __m512 vmax = _mm512_setzero_ps();
-        int64_t i = 0;
-        for (; i + 16 <= n; i += 16) {  /* the oracle's rounding: three products, two sums */
-            const __m512 dx = _mm512_sub_ps(px, _mm512_loadu_ps(x + i));
-            const __m512 dy = _mm512_sub_ps(py, _mm512_loadu_ps(y + i));
-            const __m512 dz = _mm512_sub_ps(pz, _mm512_loadu_ps(z + i));
-            __m512 d = _mm512_mul_ps(dx, dx);
-            d = _mm512_add_ps(d, _mm512_mul_ps(dy, dy));
-            d = _mm512_add_ps(d, _mm512_mul_ps(dz, dz));
-            _mm512_storeu_ps(dist + i, d);
-            _mm256_storeu_si256((__m256i *)(h + i), _mm512_cvtepi32_epi16(
-                _mm512_srli_epi32(_mm512_castps_si512(d), 16)));
-            vmax = _mm512_max_ps(vmax, d);
-            n1 = _mm512_mask_add_epi32(n1, _mm512_cmp_ps_mask(d, g1, _CMP_LE_OQ), n1, one);
-            n2 = _mm512_mask_add_epi32(n2, _mm512_cmp_ps_mask(d, g2, _CMP_LE_OQ), n2, one);
-        }
-        int64_t c1 = _mm512_reduce_add_epi32(n1), c2 = _mm512_reduce_add_epi32(n2);
-        float dmax = _mm512_reduce_max_ps(vmax);
-        for (; i < n; ++i) {
-            const float dx = cx[c] - x[i], dy = cy[c] - y[i], dz = cz[c] - z[i];
-            float d = dx * dx;
-            d = d + dy * dy;
-            d = d + dz * dz;
-            dist[i] = d;
-            h[i] = (uint16_t)code_of(d);
-            dmax = d > dmax ? d : dmax;
-            c1 += d <= f1;
-            c2 += d <= f2;
-        }
-        /* invariant over codes: count(code <= lo) = clo < k <= chi = count(code <= hi);
-         * lo = -1: none */
-        int32_t lo = -1, hi = code_of(dmax);
-        int64_t clo = 0, chi = n;
-        if (c1 >= k) { hi = q1; chi = c1; }
-        else if (c2 >= k) { lo = q1; clo = c1; hi = q2; chi = c2; }
-        else { lo = q2; clo = c2; }
-        for (int it = 0; it < 12 && chi - clo > 24 && hi - lo > 1; ++it) {
-            int32_t t = code_of(bracket_tau(lo < 0 ? -1.0f : code_top(lo), code_top(hi), clo,
-                                            chi, k));
-            t = t <= lo ? lo + 1 : (t >= hi ? hi - 1 : t);
-            const __m512i vt = _mm512_set1_epi16((short)t);
-            int64_t ct = 0;
-            for (int64_t v = 0; v < nv; ++v)
-                ct += __builtin_popcount(_mm512_cmple_epu16_mask(
-                    _mm512_loadu_si512((const void *)(h + 32 * v)), vt));
-            if (ct >= k) { hi = t; chi = ct; } else { lo = t; clo = ct; }
-        }
-        /* codes <= lo are in, lo < code <= hi the middle: 16-bit indices compressed */
-        const __m512i vlo = _mm512_set1_epi16((short)(lo < 0 ? 0 : lo));
-        const __m512i vhi = _mm512_set1_epi16((short)hi);
-        __m512i idx = iota;
-        int64_t ca = 0, nm = 0;
-        for (int64_t v = 0; v < nv; ++v) {
-            const __m512i hv = _mm512_loadu_si512((const void *)(h + 32 * v));
-            const __mmask32 ma = lo < 0 ? 0 : _mm512_cmple_epu16_mask(hv, vlo);
-            const __mmask32 mb = _mm512_cmple_epu16_mask(hv, vhi) & ~ma;
-            _mm512_storeu_si512((void *)(a16 + ca), _mm512_maskz_compress_epi16(ma, idx));
-            _mm512_storeu_si512((void *)(b16 + nm), _mm512_maskz_compress_epi16(mb, idx));
-            ca += __builtin_popcount(ma);
-            nm += __builtin_popcount(mb);
-            idx = _mm512_add_epi16(idx, step);
-        }
-        /* widened 16 at a time: up to 15 past ca, inside the middle's part or the slack */
-        for (int64_t j = 0; j < ca; j += 16)
-            _mm512_storeu_si512((void *)(row + j), _mm512_cvtepu16_epi32(
-                _mm256_loadu_si256((const __m256i *)(a16 + j))));
-        for (int64_t j = 0; j < nm; ++j) mk[j] = make_key(dist[b16[j]], b16[j]);
-        take_middle(mk, nm, k - clo, row + clo);
-    }
-}
-#endif
 
 /* A guess at the k-th smallest distance from a centre: 4 m2 k / n, m2 the points' mean
  * squared distance from their mean. Exact on a sphere's surface (a cap within chord r holds
@@ -339,21 +175,24 @@ float pgn_knn_guess(const float *x, const float *y, const float *z, int64_t n, i
     return g > 0.0 && g < 1e30 ? (float)g : 0.0f;
 }
 
+
+
 /* k nearest points (keys by distance then index) of each of s centres.
  * x, y, z: SoA points (n each); cx, cy, cz: centres (s each); nb: (s, k) int32 out,
  * unordered within a row, plus 16 int32 of writable slack after the last row.
  * dist: n floats scratch; keys: 2 n + 32 uint64 scratch; guess: pgn_knn_guess(x, y, z, n, k),
- * or 0 to compute it here.
+ * or 0 to compute it here; sl: pgn_knn_slab of these points, or NULL.
  *
  * The k-th smallest distance is bracketed by counting passes (interpolation): points at
  * or below the low end are in, and only the few between the ends are ordered by
  * (distance, index). The distance pass already counts at 0.6 and 1.6 times the guess,
  * which saves one or two counting passes; counts are exact, so a poor guess only costs
- * passes. A row's order follows its bracket, so the guess depends on the points alone:
- * the rows are the same bits however the centres are split between calls (threads). */
-void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const float *cx,
-             const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
-             uint64_t *keys, float guess) {
+ * passes. A row's order follows its bracket (and its slab), so the guess depends on the
+ * points alone: the rows are the same bits however the centres are split between calls
+ * (threads). */
+void pgn_knn_in(const float *x, const float *y, const float *z, int64_t n, const float *cx,
+                const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb,
+                float *dist, uint64_t *keys, float guess, const knn_slab *sl) {
     if (k >= n) {
         for (int64_t c = 0; c < s; ++c)
             for (int64_t i = 0; i < n; ++i) nb[c * k + i] = (int32_t)i;
@@ -362,9 +201,18 @@ void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const fl
     if (!(guess > 0.0f)) guess = pgn_knn_guess(x, y, z, n, k);
 #if defined(__AVX512BW__) && defined(__AVX512VBMI2__)
     if (n >= 64 && n < 65536) {
-        knn_codes(x, y, z, n, cx, cy, cz, s, k, nb, dist, keys, guess);
+        pgn_knn_codes(x, y, z, n, cx, cy, cz, s, k, nb, dist, keys, guess,
+                      sl && sl->n == n ? sl : NULL);
         return;
     }
 #endif
+    (void)sl;
     knn_f32(x, y, z, n, cx, cy, cz, s, k, nb, dist, keys, guess);
+}
+
+/* pgn_knn_in without a slab. */
+void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const float *cx,
+             const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
+             uint64_t *keys, float guess) {
+    pgn_knn_in(x, y, z, n, cx, cy, cz, s, k, nb, dist, keys, guess, NULL);
 }

@@ -56,10 +56,10 @@ static void std_centre(const float *feat, int64_t Dp, const int32_t *nr, int64_t
 static void knn_chunk(agg_job *j, int tid, int64_t c0, int64_t c1) {
     const int64_t K = j->K;
     if (c1 - 1 > c0)
-        pgn_knn(j->px, j->py, j->pz, j->n, j->qx + c0, j->qy + c0, j->qz + c0, c1 - 1 - c0, K,
-                j->nb_out + c0 * K, j->dist[tid], j->keys[tid], j->guess);
-    pgn_knn(j->px, j->py, j->pz, j->n, j->qx + c1 - 1, j->qy + c1 - 1, j->qz + c1 - 1, 1, K,
-            j->tail[tid], j->dist[tid], j->keys[tid], j->guess);
+        pgn_knn_in(j->px, j->py, j->pz, j->n, j->qx + c0, j->qy + c0, j->qz + c0, c1 - 1 - c0,
+                   K, j->nb_out + c0 * K, j->dist[tid], j->keys[tid], j->guess, j->slab);
+    pgn_knn_in(j->px, j->py, j->pz, j->n, j->qx + c1 - 1, j->qy + c1 - 1, j->qz + c1 - 1, 1, K,
+               j->tail[tid], j->dist[tid], j->keys[tid], j->guess, j->slab);
     memcpy(j->nb_out + (c1 - 1) * K, j->tail[tid], sizeof(int32_t) * (size_t)K);
 }
 
