@@ -89,7 +89,10 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                           {'floating_point_range': _float_range(-1.0, 1.0)}),
     'max_batch': (32, 'Most objects encoded in one micro-batch (across topics).',
                   {'integer_range': _int_range(1, 1024)}),
-    'queue_size': (8, 'Messages waiting per input topic; when full the oldest is dropped.',
+    'queue_size': (16, 'Messages waiting per input topic; when full the oldest is dropped. '
+                       'Under overload the worker takes them as one batch: 16 answers ~13 % '
+                       'more a second than 8 (the classifier reads its bank once a batch), '
+                       'each about twice as late.',
                    {'integer_range': _int_range(1, 10_000)}),
     'qos_reliability': ('reliable', "Input QoS reliability: 'reliable' (no object lost in "
                                     "transport) or 'best_effort' (objects > ~600 KB can be "
