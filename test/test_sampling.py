@@ -86,6 +86,42 @@ def test_every_simd_build_of_fps_ties_like_the_oracle(build: str, tmp_path: Path
 
 
 @pytest.mark.parametrize('build', sorted(KERNEL_BUILDS))
+def test_fps_over_a_slab_ties_like_the_oracle(build: str, tmp_path: Path) -> None:
+    # the encoder's FPS over points in buckets (pgn_knn_slab, where the 16-bit codes build;
+    # pgn_fps_in updates only the buckets near each new point), against the oracle: exact
+    # ties, every point taken (the distances fall to 0), blocks past n
+    lib = kernel_build(('pgn_geom.c', 'pgn_knn.c', 'pgn_knn16.c'), build, tmp_path,
+                       ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
+    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+    lib.pgn_fps_in.argtypes = [ptr, ptr, ptr, ptr, i64, i64, ptr, ptr, ptr]
+    lib.pgn_knn_slab.argtypes = [ptr, ptr, ptr, i64, i64, ptr, ptr]
+    lib.pgn_knn_slab_floats.restype = i64
+    lib.pgn_knn_slab_floats.argtypes = [i64]
+    slab = ctypes.create_string_buffer(256)
+    for n, m, kind in ((1024, 512, 'normal'), (1000, 1000, 'grid'), (517, 517, 'duplicated'),
+                       (1030, 700, 'normal'), (800, 400, 'grid')):
+        cloud = _cloud(n, 9)
+        if kind == 'grid':
+            cloud = np.round(cloud * 2) / 2
+        elif kind == 'duplicated':
+            cloud[n // 2:] = cloud[:n - n // 2]
+        cloud = np.ascontiguousarray(cloud, np.float32)
+        want = oracle_fps(torch.from_numpy(cloud), m).numpy()
+        soa = np.ascontiguousarray(cloud.T)
+        buf = np.empty(lib.pgn_knn_slab_floats(n), np.float32)
+        built = lib.pgn_knn_slab(soa[0].ctypes.data, soa[1].ctypes.data, soa[2].ctypes.data,
+                                 n, 1, buf.ctypes.data, slab)
+        assert bool(built) == ('vbmi2' in build)
+        for with_slab in (False, True) if built else (False,):
+            got, scratch = np.empty(m, np.int64), np.empty(n, np.float32)
+            lib.pgn_fps_in(cloud.ctypes.data, soa[0].ctypes.data, soa[1].ctypes.data,
+                           soa[2].ctypes.data, n, m, got.ctypes.data, scratch.ctypes.data,
+                           slab if with_slab else None)
+            np.testing.assert_array_equal(got, want, err_msg=f'{build}, {n} points, {kind}, '
+                                                             f'slab {with_slab}')
+
+
+@pytest.mark.parametrize('build', sorted(KERNEL_BUILDS))
 def test_every_simd_build_of_knn_ties_like_the_oracle(build: str, tmp_path: Path) -> None:
     # pgn_knn.c counts and splits on floats (portable, AVX2, AVX-512), pgn_knn16.c on 16-bit
     # codes (AVX-512 BW + VBMI2, 64 <= n): each build that this CPU runs, against the oracle's

@@ -182,8 +182,21 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         const int64_t Dp = padded(D), D2p = padded(D2);
         float *x = soa, *y = soa + n, *z = soa + 2 * n;
         for (int64_t i = 0; i < n; ++i) { x[i] = xyz[i * 3]; y[i] = xyz[i * 3 + 1]; z[i] = xyz[i * 3 + 2]; }
+        /* the points in buckets along their widest axis, where that pays (pgn_knn_slab):
+         * FPS updates, and kNN searches, only the buckets near a point */
+        knn_slab slab;
+        const knn_slab *sl = NULL;
+#if !defined(PGN_NO_SLAB)
+        TIC(12);
+        sl = pgn_knn_slab(x, y, z, n, K, slabbuf, &slab) ? &slab : NULL;
+        TOC(12, 10);
+#endif
         TIC(1);
-        pgn_fps(xyz, x, y, z, n, S, cidx, scratch);
+#if defined(PGN_NO_FPS_SLAB)
+        pgn_fps_in(xyz, x, y, z, n, S, cidx, scratch, NULL);
+#else
+        pgn_fps_in(xyz, x, y, z, n, S, cidx, scratch, sl);
+#endif
         TOC(1, 0);
         float *cx = soa + 3 * n, *cy = cx + S, *cz = cy + S;
         for (int64_t c = 0; c < S; ++c) {
@@ -203,10 +216,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         oj.knn = 1;
         oj.px = x; oj.py = y; oj.pz = z; oj.n = n;
         oj.guess = pgn_knn_guess(x, y, z, n, K);
-        knn_slab slab;
-#if !defined(PGN_NO_SLAB)
-        oj.slab = pgn_knn_slab(x, y, z, n, K, slabbuf, &slab) ? &slab : NULL;
-#endif
+        oj.slab = sl;
         oj.nb_out = nb;
         oj.dist[0] = scratch; oj.dist[1] = scratch2;
         oj.keys[0] = keys; oj.keys[1] = keys2;

@@ -283,10 +283,76 @@ void pgn_fps_from(const float *x, const float *y, const float *z, int64_t n, int
     }
 }
 
+#if defined(__AVX512F__)
+/* pgn_fps_from over a slab's points (pgn_knn_slab: in buckets along one axis), each step
+ * updating only the buckets where a distance can fall. A point's distance to the chosen set
+ * falls only if its distance to the new point is smaller, and that distance is at least the
+ * point's axis offset squared (as rounded); every current distance is at most the new
+ * point's own, D. So points whose axis offset exceeds sqrt(D) (0.1 % more, for the
+ * roundings) keep theirs exactly, and the step updates the buckets within it. Each block of
+ * 16 points keeps its largest distance and, among equals, its lowest index; the pick is the
+ * largest over the blocks, then the lowest index: the points pgn_fps_from picks, in order. */
+static void fps_slab(const knn_slab *sl, const float *x, const float *y, const float *z,
+                     int64_t m, int64_t cur, int64_t *idx) {
+    const int64_t n = sl->n, nbk = (n + 15) / 16, ng = (nbk + 15) / 16;
+    const float *sx = sl->s[0], *sy = sl->s[1], *sz = sl->s[2];
+    const float *ca = sl->axis == 0 ? x : (sl->axis == 1 ? y : z);
+    float *md = sl->fmd, *bmax = sl->bmax;
+    int32_t *barg = sl->barg;
+    for (int64_t k = nbk; k < 16 * ng; ++k) { bmax[k] = -2.0f; barg[k] = INT32_MAX; }
+    float D = INFINITY;
+    for (int64_t it = 0; it < m; ++it) {
+        idx[it] = cur;
+        const __m512 vx = _mm512_set1_ps(x[cur]), vy = _mm512_set1_ps(y[cur]);
+        const __m512 vz = _mm512_set1_ps(z[cur]);
+        int64_t k0 = 0, k1 = nbk;
+        if (it) {
+            const float qa = ca[cur], r = sqrtf(D) * 1.001f + fabsf(qa) * 1e-6f + 1e-30f;
+            const int32_t b0 = slab_bucket(sl, qa - r), b1 = slab_bucket(sl, qa + r);
+            k0 = (b0 ? sl->bend[b0 - 1] : 0) / 16;
+            k1 = (sl->bend[b1] + 15) / 16;
+        }
+        for (int64_t k = k0; k < k1; ++k) {
+            const int64_t o = 16 * k;
+            const __m512 dx = _mm512_sub_ps(_mm512_loadu_ps(sx + o), vx);
+            const __m512 dy = _mm512_sub_ps(_mm512_loadu_ps(sy + o), vy);
+            const __m512 dz = _mm512_sub_ps(_mm512_loadu_ps(sz + o), vz);
+            __m512 d = _mm512_mul_ps(dx, dx);
+            d = _mm512_add_ps(d, _mm512_mul_ps(dy, dy));
+            d = _mm512_add_ps(d, _mm512_mul_ps(dz, dz));
+            __m512 v;
+            if (it == 0) {  /* from +inf: min(inf, d) = d; the last block's slack: -1 */
+                const __mmask16 in = n - o >= 16 ? (__mmask16)0xffff
+                                                 : (__mmask16)((1u << (n - o)) - 1u);
+                v = _mm512_mask_mov_ps(_mm512_set1_ps(-1.0f), in, d);
+            } else {
+                const __m512 old = _mm512_loadu_ps(md + o);
+                v = _mm512_mask_mov_ps(old, _mm512_cmp_ps_mask(d, old, _CMP_LT_OQ), d);
+            }
+            _mm512_storeu_ps(md + o, v);
+            const float bm = _mm512_reduce_max_ps(v);
+            bmax[k] = bm;
+            barg[k] = _mm512_mask_reduce_min_epi32(
+                _mm512_cmp_ps_mask(v, _mm512_set1_ps(bm), _CMP_EQ_OQ),
+                _mm512_loadu_si512((const void *)(sl->idx + o)));
+        }
+        __m512 mv = _mm512_loadu_ps(bmax);
+        for (int64_t g = 1; g < ng; ++g) mv = _mm512_max_ps(mv, _mm512_loadu_ps(bmax + 16 * g));
+        D = _mm512_reduce_max_ps(mv);
+        __m512i mi = _mm512_set1_epi32(INT32_MAX);
+        for (int64_t g = 0; g < ng; ++g)
+            mi = _mm512_mask_min_epi32(mi, _mm512_cmp_ps_mask(_mm512_loadu_ps(bmax + 16 * g),
+                                                              _mm512_set1_ps(D), _CMP_EQ_OQ),
+                                       mi, _mm512_loadu_si512((const void *)(barg + 16 * g)));
+        cur = _mm512_reduce_min_epi32(mi);
+    }
+}
+#endif
+
 /* The encoder's FPS: start at the point farthest from the torch-exact centroid of
- * xyz ((n, 3) AoS copy of x, y, z). */
-void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
-             int64_t m, int64_t *idx, float *min_d) {
+ * xyz ((n, 3) AoS copy of x, y, z); over a slab's buckets where sl is given. */
+void pgn_fps_in(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
+                int64_t m, int64_t *idx, float *min_d, const knn_slab *sl) {
     float c[3];
     pgn_centroid(xyz, n, c);
     for (int64_t i = 0; i < n; ++i) {
@@ -296,5 +362,18 @@ void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, i
         d = d + dz * dz;
         min_d[i] = d;
     }
+#if defined(__AVX512F__)
+    if (sl && sl->n == n) {
+        fps_slab(sl, x, y, z, m, first_argmax(min_d, n), idx);
+        return;
+    }
+#endif
+    (void)sl;
     pgn_fps_from(x, y, z, n, m, first_argmax(min_d, n), idx, min_d);
+}
+
+/* pgn_fps_in without a slab. */
+void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
+             int64_t m, int64_t *idx, float *min_d) {
+    pgn_fps_in(xyz, x, y, z, n, m, idx, min_d, NULL);
 }

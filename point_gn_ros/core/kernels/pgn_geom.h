@@ -22,10 +22,20 @@ typedef struct knn_slab {
     const uint16_t *idx16; /* the same as 16 bits, 32 more (0) past n */
     float lo, sc;         /* bucket of v: (v - lo) sc, clamped to [0, 255] */
     const int32_t *bend;  /* (256,) where each bucket's points end */
+    float *bmax;          /* FPS scratch (pgn_fps_in): each block of 16 points' largest */
+    int32_t *barg;        /* distance and its point (lowest index among equals) */
+    float *fmd;           /* FPS scratch: each point's distance to the chosen set (n + 16) */
 } knn_slab;
+/* The bucket of value v along the slab's axis, clamped to [0, 255]: monotone in v. */
+static inline int32_t slab_bucket(const knn_slab *sl, float v) {
+    const float t = (v - sl->lo) * sl->sc;
+    return t < 0.0f || t != t ? 0 : (t >= 255.0f ? 255 : (int32_t)t);
+}
 int64_t pgn_knn_slab_floats(int64_t n);
 int pgn_knn_slab(const float *x, const float *y, const float *z, int64_t n, int64_t k,
                  float *buf, knn_slab *sl);
+void pgn_fps_in(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
+                int64_t m, int64_t *idx, float *min_d, const knn_slab *sl);
 void pgn_knn_in(const float *x, const float *y, const float *z, int64_t n, const float *cx,
                 const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb,
                 float *dist, uint64_t *keys, float guess, const knn_slab *sl);

@@ -132,12 +132,6 @@ static int codes_centre(const float *x, const float *y, const float *z, int64_t 
 }
 
 
-/* The bucket of value v along the slab's axis (pgn_knn_slab), clamped to [0, 255]. */
-static inline int32_t slab_bucket(const knn_slab *sl, float v) {
-    const float t = (v - sl->lo) * sl->sc;
-    return t < 0.0f || t != t ? 0 : (t >= 255.0f ? 255 : (int32_t)t);
-}
-
 /* pgn_knn's search on 16-bit codes for centres [0, s); sl: the points sorted along an axis
  * (pgn_knn_slab), or NULL. With sl, a centre first tries a slab: the buckets of that axis
  * that hold every point whose offset on the axis alone is within the guess's outer count,
@@ -173,7 +167,9 @@ void pgn_knn_codes(const float *x, const float *y, const float *z, int64_t n,
 #endif
 
 /* Scratch floats pgn_knn_slab needs for n points. */
-int64_t pgn_knn_slab_floats(int64_t n) { return 5 * n + (n + 32) / 2 + 3 * 16 + 257 + 16; }
+int64_t pgn_knn_slab_floats(int64_t n) {
+    return 4 * (n + 16) + n + 257 + 15 + (n + 32) / 2 + 2 * (n / 16 + 16) + (n + 16) + 16;
+}
 
 /* The points in 256 buckets along their widest axis, for pgn_knn_in: a centre's slab is then
  * one run of them, whole buckets, and a centre searches its slab instead of all n points
@@ -207,7 +203,7 @@ int pgn_knn_slab(const float *x, const float *y, const float *z, int64_t n, int6
     const int a = w[0] >= w[1] && w[0] >= w[2] ? 0 : (w[1] >= w[2] ? 1 : 2);
     if (!(w[a] > 0.0f) || !isfinite(w[a])) return 0;
     float *sx = buf, *sy = sx + n + 16, *sz = sy + n + 16;
-    int32_t *idx = (int32_t *)(sz + n + 16), *bk = idx + n, *cnt = bk + n;
+    int32_t *idx = (int32_t *)(sz + n + 16), *bk = idx + n + 16, *cnt = bk + n;
     const float *v = ax[a], sc = 255.0f / w[a];
     memset(cnt, 0, sizeof(int32_t) * 257);
     sl->lo = lo[a];
@@ -225,12 +221,19 @@ int pgn_knn_slab(const float *x, const float *y, const float *z, int64_t n, int6
         i16[p] = (uint16_t)idx[p];
     }
     for (int64_t p = n; p < n + 32; ++p) i16[p] = 0;
+    for (int64_t p = n; p < n + 16; ++p) {   /* FPS's last block (pgn_fps_in): inert points */
+        sx[p] = sy[p] = sz[p] = 0.0f;
+        idx[p] = INT32_MAX;
+    }
     sl->n = n;
     sl->axis = a;
     sl->s[0] = sx; sl->s[1] = sy; sl->s[2] = sz;
     sl->idx = idx;
     sl->idx16 = i16;
     sl->bend = cnt;
+    sl->bmax = (float *)(i16 + n + 32);
+    sl->barg = (int32_t *)(sl->bmax + n / 16 + 16);
+    sl->fmd = (float *)(sl->barg + n / 16 + 16);
     return 1;
 #else
     (void)x; (void)y; (void)z; (void)n; (void)k; (void)buf; (void)sl;
