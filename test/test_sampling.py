@@ -87,16 +87,17 @@ def test_every_simd_build_of_fps_ties_like_the_oracle(build: str, tmp_path: Path
 
 @pytest.mark.parametrize('build', sorted(KERNEL_BUILDS))
 def test_fps_over_a_slab_ties_like_the_oracle(build: str, tmp_path: Path) -> None:
-    # the encoder's FPS over points in buckets (pgn_knn_slab, where the 16-bit codes build;
-    # pgn_fps_in updates only the buckets near each new point), against the oracle: exact
-    # ties, every point taken (the distances fall to 0), blocks past n
-    lib = kernel_build(('pgn_geom.c', 'pgn_knn.c', 'pgn_knn16.c'), build, tmp_path,
+    # the encoder's FPS over points in buckets (pgn_slab.c; pgn_fps_in updates only the
+    # buckets near each new point on AVX-512, elsewhere it ignores the slab), each build,
+    # against the oracle: exact ties, every point taken (the distances fall to 0), blocks
+    # past n
+    lib = kernel_build(('pgn_geom.c', 'pgn_slab.c'), build, tmp_path,
                        ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.pgn_fps_in.argtypes = [ptr, ptr, ptr, ptr, i64, i64, ptr, ptr, ptr]
-    lib.pgn_knn_slab.argtypes = [ptr, ptr, ptr, i64, i64, ptr, ptr]
-    lib.pgn_knn_slab_floats.restype = i64
-    lib.pgn_knn_slab_floats.argtypes = [i64]
+    lib.pgn_slab_build.argtypes = [ptr, ptr, ptr, i64, i64, ptr, ptr]
+    lib.pgn_slab_floats.restype = i64
+    lib.pgn_slab_floats.argtypes = [i64]
     slab = ctypes.create_string_buffer(256)
     for n, m, kind in ((1024, 512, 'normal'), (1000, 1000, 'grid'), (517, 517, 'duplicated'),
                        (1030, 700, 'normal'), (800, 400, 'grid')):
@@ -108,10 +109,10 @@ def test_fps_over_a_slab_ties_like_the_oracle(build: str, tmp_path: Path) -> Non
         cloud = np.ascontiguousarray(cloud, np.float32)
         want = oracle_fps(torch.from_numpy(cloud), m).numpy()
         soa = np.ascontiguousarray(cloud.T)
-        buf = np.empty(lib.pgn_knn_slab_floats(n), np.float32)
-        built = lib.pgn_knn_slab(soa[0].ctypes.data, soa[1].ctypes.data, soa[2].ctypes.data,
-                                 n, 1, buf.ctypes.data, slab)
-        assert bool(built) == ('vbmi2' in build)
+        buf = np.empty(lib.pgn_slab_floats(n), np.float32)
+        built = lib.pgn_slab_build(soa[0].ctypes.data, soa[1].ctypes.data, soa[2].ctypes.data,
+                                   n, 1, buf.ctypes.data, slab)
+        assert bool(built) == build.startswith('avx512')
         for with_slab in (False, True) if built else (False,):
             got, scratch = np.empty(m, np.int64), np.empty(n, np.float32)
             lib.pgn_fps_in(cloud.ctypes.data, soa[0].ctypes.data, soa[1].ctypes.data,
@@ -127,16 +128,16 @@ def test_every_simd_build_of_knn_ties_like_the_oracle(build: str, tmp_path: Path
     # codes (AVX-512 BW + VBMI2, 64 <= n): each build that this CPU runs, against the oracle's
     # stable sort, with exact ties, tails past the vector blocks, a middle past 32 keys
     # (duplicates) and centres whose k-th distances differ from their predecessor's guess
-    lib = kernel_build(('pgn_knn.c', 'pgn_knn16.c'), build, tmp_path,
+    lib = kernel_build(('pgn_knn.c', 'pgn_knn16.c', 'pgn_slab.c'), build, tmp_path,
                        ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.pgn_knn.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, ptr, i64, i64, ptr, ptr, ptr,
                             ctypes.c_float]
     lib.pgn_knn_in.argtypes = [*lib.pgn_knn.argtypes, ptr]
-    lib.pgn_knn_slab.argtypes = [ptr, ptr, ptr, i64, i64, ptr, ptr]
-    lib.pgn_knn_slab_floats.restype = i64
-    lib.pgn_knn_slab_floats.argtypes = [i64]
-    slab = ctypes.create_string_buffer(256)       # a knn_slab (72 bytes on x86-64)
+    lib.pgn_slab_build.argtypes = [ptr, ptr, ptr, i64, i64, ptr, ptr]
+    lib.pgn_slab_floats.restype = i64
+    lib.pgn_slab_floats.argtypes = [i64]
+    slab = ctypes.create_string_buffer(256)       # a pgn_slab (96 bytes on x86-64)
     rng = np.random.default_rng(3)
     for n, k, kind in ((1024, 120, 'normal'), (1000, 120, 'grid'), (517, 120, 'duplicated'),
                        (512, 200, 'normal'), (63, 20, 'normal'), (64, 63, 'grid'),
@@ -156,12 +157,12 @@ def test_every_simd_build_of_knn_ties_like_the_oracle(build: str, tmp_path: Path
         dist, keys = np.empty(n, np.float32), np.empty(2 * n + 32, np.uint64)
         # the guess at the k-th distance (0: computed from the points) only steers the
         # counting: far too small or too large, the rows must not change
-        # the points sorted along an axis (the 16-bit codes' builds, n >= 6 k): a centre
-        # searches its slab, or all points when fewer than k of them are near enough
-        buf = np.empty(lib.pgn_knn_slab_floats(n), np.float32)
-        sorted_ = lib.pgn_knn_slab(p[0].ctypes.data, p[1].ctypes.data, p[2].ctypes.data, n, k,
-                                   buf.ctypes.data, slab)
-        assert bool(sorted_) == ('vbmi2' in build and n >= 6 * k)
+        # the points in buckets along an axis (AVX-512, n >= 6 k): a centre searches its slab
+        # (the 16-bit codes' builds), or all points when fewer than k of them are near enough
+        buf = np.empty(lib.pgn_slab_floats(n), np.float32)
+        sorted_ = lib.pgn_slab_build(p[0].ctypes.data, p[1].ctypes.data, p[2].ctypes.data, n,
+                                     k, buf.ctypes.data, slab)
+        assert bool(sorted_) == (build.startswith('avx512') and n >= 6 * k)
         for guess in (0.0, 1e-6, 50.0):
             for with_slab in (False, True) if sorted_ else (False,):
                 lib.pgn_knn_in(p[0].ctypes.data, p[1].ctypes.data, p[2].ctypes.data, n,
@@ -174,8 +175,8 @@ def test_every_simd_build_of_knn_ties_like_the_oracle(build: str, tmp_path: Path
                                                       f'guess {guess}, slab {with_slab}')
                 if guess == 0.0 and not with_slab:
                     unsorted = rows.copy()
-                elif guess == 0.0 and k > 1:
-                    # the slab was searched: its rows come in the slab's order
+                elif guess == 0.0 and k > 1 and 'vbmi2' in build:
+                    # the slab was searched (on 16-bit codes): its rows come in its order
                     assert not np.array_equal(rows, unsorted), f'{build}, {n}, {kind}'
 
 

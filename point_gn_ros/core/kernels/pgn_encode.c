@@ -148,7 +148,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 #endif
     int32_t *nb = xalloc(sizeof(int32_t) * (size_t)(S1 * K1 + 16));
     uint64_t *keys = xalloc(sizeof(uint64_t) * (size_t)(2 * N + 32));
-    float *slabbuf = xalloc(sizeof(float) * (size_t)pgn_knn_slab_floats(N));
+    float *slabbuf = xalloc(sizeof(float) * (size_t)pgn_slab_floats(N));
     int rc = 0;
     TOC(11, 11);
 #if defined(__AVX512F__) || defined(PGN_AVX2)
@@ -182,13 +182,13 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         const int64_t Dp = padded(D), D2p = padded(D2);
         float *x = soa, *y = soa + n, *z = soa + 2 * n;
         for (int64_t i = 0; i < n; ++i) { x[i] = xyz[i * 3]; y[i] = xyz[i * 3 + 1]; z[i] = xyz[i * 3 + 2]; }
-        /* the points in buckets along their widest axis, where that pays (pgn_knn_slab):
+        /* the points in buckets along their widest axis, where that pays (pgn_slab.c):
          * FPS updates, and kNN searches, only the buckets near a point */
-        knn_slab slab;
-        const knn_slab *sl = NULL;
+        pgn_slab slab;
+        const pgn_slab *sl = NULL;
 #if !defined(PGN_NO_SLAB)
         TIC(12);
-        sl = pgn_knn_slab(x, y, z, n, K, slabbuf, &slab) ? &slab : NULL;
+        sl = pgn_slab_build(x, y, z, n, K, slabbuf, &slab) ? &slab : NULL;
         TOC(12, 10);
 #endif
         TIC(1);

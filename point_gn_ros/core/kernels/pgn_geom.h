@@ -5,6 +5,7 @@
 #ifndef PGN_GEOM_H
 #define PGN_GEOM_H
 
+#include <math.h>
 #include <stdint.h>
 
 void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
@@ -13,8 +14,8 @@ void pgn_knn(const float *x, const float *y, const float *z, int64_t n, const fl
              const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb, float *dist,
              uint64_t *keys, float guess);
 float pgn_knn_guess(const float *x, const float *y, const float *z, int64_t n, int64_t k);
-/* The points in buckets along one axis, for pgn_knn_in (pgn_knn_slab builds it). */
-typedef struct knn_slab {
+/* The points in buckets along one axis (pgn_slab.c), for pgn_fps_in and pgn_knn_in. */
+typedef struct pgn_slab {
     int64_t n;
     int axis;
     const float *s[3];    /* x, y, z in that order */
@@ -25,19 +26,30 @@ typedef struct knn_slab {
     float *bmax;          /* FPS scratch (pgn_fps_in): each block of 16 points' largest */
     int32_t *barg;        /* distance and its point (lowest index among equals) */
     float *fmd;           /* FPS scratch: each point's distance to the chosen set (n + 16) */
-} knn_slab;
+} pgn_slab;
 /* The bucket of value v along the slab's axis, clamped to [0, 255]: monotone in v. */
-static inline int32_t slab_bucket(const knn_slab *sl, float v) {
+static inline int32_t slab_bucket(const pgn_slab *sl, float v) {
     const float t = (v - sl->lo) * sl->sc;
     return t < 0.0f || t != t ? 0 : (t >= 255.0f ? 255 : (int32_t)t);
 }
-int64_t pgn_knn_slab_floats(int64_t n);
-int pgn_knn_slab(const float *x, const float *y, const float *z, int64_t n, int64_t k,
-                 float *buf, knn_slab *sl);
+/* The positions [*p0, *p1) of the buckets that hold every point within squared distance f
+ * of a point at qa on the slab's axis: its axis offset squared, as rounded, is at most f.
+ * The ends are sqrt(f) and 0.1 % more away: far more than the roundings of the offset, of
+ * its square and of the ends themselves; the buckets are monotone in the value. */
+static inline void pgn_slab_range(const pgn_slab *sl, float qa, float f, int64_t *p0,
+                                  int64_t *p1) {
+    const float r = sqrtf(f) * 1.001f + fabsf(qa) * 1e-6f + 1e-30f;
+    const int32_t b0 = slab_bucket(sl, qa - r), b1 = slab_bucket(sl, qa + r);
+    *p0 = b0 ? sl->bend[b0 - 1] : 0;
+    *p1 = sl->bend[b1];
+}
+int64_t pgn_slab_floats(int64_t n);
+int pgn_slab_build(const float *x, const float *y, const float *z, int64_t n, int64_t k,
+                   float *buf, pgn_slab *sl);
 void pgn_fps_in(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
-                int64_t m, int64_t *idx, float *min_d, const knn_slab *sl);
+                int64_t m, int64_t *idx, float *min_d, const pgn_slab *sl);
 void pgn_knn_in(const float *x, const float *y, const float *z, int64_t n, const float *cx,
                 const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb,
-                float *dist, uint64_t *keys, float guess, const knn_slab *sl);
+                float *dist, uint64_t *keys, float guess, const pgn_slab *sl);
 
 #endif

@@ -1,6 +1,6 @@
 /* Point-GN k nearest neighbours: each centre's k nearest points, ties to the lower index.
  * This file: the search on float distances (any CPU), the guess and the entry points;
- * pgn_knn16.c: the search on 16-bit codes (AVX-512 BW and VBMI2) and slabs.
+ * pgn_knn16.c: the search on 16-bit codes (AVX-512 BW and VBMI2); pgn_slab.c: the slabs.
  *
  * Compiled WITHOUT -ffast-math and with -ffp-contract=off, like pgn_geom.c: every distance
  * is rounded like the oracle's torch ops ((dx*dx + dy*dy) + dz*dz), so the choices are
@@ -181,7 +181,7 @@ float pgn_knn_guess(const float *x, const float *y, const float *z, int64_t n, i
  * x, y, z: SoA points (n each); cx, cy, cz: centres (s each); nb: (s, k) int32 out,
  * unordered within a row, plus 16 int32 of writable slack after the last row.
  * dist: n floats scratch; keys: 2 n + 32 uint64 scratch; guess: pgn_knn_guess(x, y, z, n, k),
- * or 0 to compute it here; sl: pgn_knn_slab of these points, or NULL.
+ * or 0 to compute it here; sl: these points' slab (pgn_slab_build), or NULL.
  *
  * The k-th smallest distance is bracketed by counting passes (interpolation): points at
  * or below the low end are in, and only the few between the ends are ordered by
@@ -192,7 +192,7 @@ float pgn_knn_guess(const float *x, const float *y, const float *z, int64_t n, i
  * (threads). */
 void pgn_knn_in(const float *x, const float *y, const float *z, int64_t n, const float *cx,
                 const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb,
-                float *dist, uint64_t *keys, float guess, const knn_slab *sl) {
+                float *dist, uint64_t *keys, float guess, const pgn_slab *sl) {
     if (k >= n) {
         for (int64_t c = 0; c < s; ++c)
             for (int64_t i = 0; i < n; ++i) nb[c * k + i] = (int32_t)i;
@@ -206,7 +206,7 @@ void pgn_knn_in(const float *x, const float *y, const float *z, int64_t n, const
         return;
     }
 #endif
-    (void)sl;
+    (void)sl;  /* on floats a slab saved no more than it cost (BENCHMARKS.md) */
     knn_f32(x, y, z, n, cx, cy, cz, s, k, nb, dist, keys, guess);
 }
 

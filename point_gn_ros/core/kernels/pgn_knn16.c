@@ -1,7 +1,6 @@
 /* Point-GN k nearest neighbours on 16-bit codes of the distances (AVX-512 BW and VBMI2; see
- * pgn_knn.c): 32 points a vector, and slabs, the points in buckets along one axis, so that a
- * centre searches only the points near it on that axis when that is exact. Elsewhere
- * pgn_knn_slab returns 0 and pgn_knn.c searches on floats.
+ * pgn_knn.c): 32 points a vector, in a centre's slab (pgn_slab.c) where that is exact.
+ * Elsewhere pgn_knn.c searches on floats.
  *
  * Compiled WITHOUT -ffast-math and with -ffp-contract=off, like pgn_knn.c.
  */
@@ -36,7 +35,7 @@ static inline float code_top(int32_t q) {
  * distance, so its middle stays small, and the middle is ordered by the float keys.
  * x, y, z: n points; map: their indices in the row (NULL: 0..n-1), 32 readable past n.
  * h, a16, b16 and mk: the
- * scratch of pgn_knn_codes. slab: the points are a slab of the stage's (knn_slab): only a
+ * scratch of pgn_knn_codes. slab: the points are a slab of the stage's (pgn_slab.c): only a
  * centre with at least k of them within the guess's outer count (1.6 guess) is searched
  * there (returns 1 and writes the row); else it returns 0 and writes nothing. */
 static int codes_centre(const float *x, const float *y, const float *z, int64_t n,
@@ -132,28 +131,25 @@ static int codes_centre(const float *x, const float *y, const float *z, int64_t 
 }
 
 
-/* pgn_knn's search on 16-bit codes for centres [0, s); sl: the points sorted along an axis
- * (pgn_knn_slab), or NULL. With sl, a centre first tries a slab: the buckets of that axis
- * that hold every point whose offset on the axis alone is within the guess's outer count,
- * dx^2 <= f2 (a point's distance, as the distance pass rounds it, is at least its dx^2: so
- * every point within f2 of the centre is in the slab, and if k of them are, so are the k
- * nearest). The slab's ends are sqrt(f2) and 0.1 % more from the centre: far more than the
- * roundings of dx^2 and of the ends themselves, and the buckets are monotone in the value. */
+/* pgn_knn's search on 16-bit codes for centres [0, s); sl: the points' slab (pgn_slab.c), or
+ * NULL. With sl, a centre first searches the buckets that hold every point within the
+ * distance pass's outer count f2 of it (pgn_slab_range: a point's distance, as rounded, is
+ * at least its axis offset squared); if k of them are within f2, so are the k nearest.
+ * Else it searches all points. */
 void pgn_knn_codes(const float *x, const float *y, const float *z, int64_t n,
                       const float *cx, const float *cy, const float *cz, int64_t s, int64_t k,
                       int32_t *nb, float *dist, uint64_t *keys, float guess,
-                      const knn_slab *sl) {
+                      const pgn_slab *sl) {
     const int64_t nv = (n + 31) / 32, R = (nv + 1) * 32;  /* codes a region (64-byte sized) */
     uint16_t *h = (uint16_t *)keys, *a16 = h + R, *b16 = a16 + R;
     uint64_t *mk = (uint64_t *)(b16 + R);   /* 6 R + 8 n bytes <= the 16 n + 256 given */
-    const float rad = sqrtf(code_top(code_of(guess * 1.6f))) * 1.001f + 1e-30f;
+    const float f2 = code_top(code_of(guess * 1.6f));
     for (int64_t c = 0; c < s; ++c) {
         int32_t *row = nb + c * k;
         if (sl) {
-            const float qa = sl->axis == 0 ? cx[c] : (sl->axis == 1 ? cy[c] : cz[c]);
-            const float r = rad + fabsf(qa) * 1e-6f;
-            const int32_t b0 = slab_bucket(sl, qa - r), b1 = slab_bucket(sl, qa + r);
-            const int64_t p0 = b0 ? sl->bend[b0 - 1] : 0, p1 = sl->bend[b1];
+            int64_t p0, p1;
+            pgn_slab_range(sl, sl->axis == 0 ? cx[c] : (sl->axis == 1 ? cy[c] : cz[c]), f2,
+                           &p0, &p1);
             if (p1 - p0 >= k
                 && codes_centre(sl->s[0] + p0, sl->s[1] + p0, sl->s[2] + p0, p1 - p0,
                                 sl->idx16 + p0, cx[c], cy[c], cz[c], k, row, dist, h, a16, b16,
@@ -165,78 +161,3 @@ void pgn_knn_codes(const float *x, const float *y, const float *z, int64_t n,
     }
 }
 #endif
-
-/* Scratch floats pgn_knn_slab needs for n points. */
-int64_t pgn_knn_slab_floats(int64_t n) {
-    return 4 * (n + 16) + n + 257 + 15 + (n + 32) / 2 + 2 * (n / 16 + 16) + (n + 16) + 16;
-}
-
-/* The points in 256 buckets along their widest axis, for pgn_knn_in: a centre's slab is then
- * one run of them, whole buckets, and a centre searches its slab instead of all n points
- * when k of them are near enough (pgn_knn_codes). Only where the 16-bit codes run (AVX-512 BW and
- * VBMI2) and n >= 6 k: elsewhere, or for points with no spread, it returns 0 (no slab) and
- * pgn_knn_in searches all points. A counting sort: within a bucket, index order. A pure
- * function of the points: every thread's centres see the same slabs.
- * buf: pgn_knn_slab_floats(n). */
-int pgn_knn_slab(const float *x, const float *y, const float *z, int64_t n, int64_t k,
-                 float *buf, knn_slab *sl) {
-#if defined(__AVX512BW__) && defined(__AVX512VBMI2__)
-    if (n < 6 * k || n >= 65536 || k < 1) return 0;
-    const float *ax[3] = {x, y, z};
-    float lo[3], w[3];
-    for (int a = 0; a < 3; ++a) {  /* min and max: exact in any order */
-        __m512 mn = _mm512_set1_ps(ax[a][0]), mx = mn;
-        int64_t i = 0;
-        for (; i + 16 <= n; i += 16) {
-            const __m512 t = _mm512_loadu_ps(ax[a] + i);
-            mn = _mm512_min_ps(mn, t);
-            mx = _mm512_max_ps(mx, t);
-        }
-        float fmn = _mm512_reduce_min_ps(mn), fmx = _mm512_reduce_max_ps(mx);
-        for (; i < n; ++i) {
-            fmn = ax[a][i] < fmn ? ax[a][i] : fmn;
-            fmx = ax[a][i] > fmx ? ax[a][i] : fmx;
-        }
-        lo[a] = fmn;
-        w[a] = fmx - fmn;
-    }
-    const int a = w[0] >= w[1] && w[0] >= w[2] ? 0 : (w[1] >= w[2] ? 1 : 2);
-    if (!(w[a] > 0.0f) || !isfinite(w[a])) return 0;
-    float *sx = buf, *sy = sx + n + 16, *sz = sy + n + 16;
-    int32_t *idx = (int32_t *)(sz + n + 16), *bk = idx + n + 16, *cnt = bk + n;
-    const float *v = ax[a], sc = 255.0f / w[a];
-    memset(cnt, 0, sizeof(int32_t) * 257);
-    sl->lo = lo[a];
-    sl->sc = sc;
-    for (int64_t i = 0; i < n; ++i) {  /* monotone in v: buckets keep the values' order */
-        const int32_t b = slab_bucket(sl, v[i]);
-        bk[i] = b;
-        cnt[b + 1]++;
-    }
-    for (int b = 0; b < 256; ++b) cnt[b + 1] += cnt[b];
-    for (int64_t i = 0; i < n; ++i) idx[cnt[bk[i]]++] = (int32_t)i;  /* cnt[b]: bucket b's end */
-    uint16_t *i16 = (uint16_t *)(cnt + 257 + 15);
-    for (int64_t p = 0; p < n; ++p) {
-        sx[p] = x[idx[p]]; sy[p] = y[idx[p]]; sz[p] = z[idx[p]];
-        i16[p] = (uint16_t)idx[p];
-    }
-    for (int64_t p = n; p < n + 32; ++p) i16[p] = 0;
-    for (int64_t p = n; p < n + 16; ++p) {   /* FPS's last block (pgn_fps_in): inert points */
-        sx[p] = sy[p] = sz[p] = 0.0f;
-        idx[p] = INT32_MAX;
-    }
-    sl->n = n;
-    sl->axis = a;
-    sl->s[0] = sx; sl->s[1] = sy; sl->s[2] = sz;
-    sl->idx = idx;
-    sl->idx16 = i16;
-    sl->bend = cnt;
-    sl->bmax = (float *)(i16 + n + 32);
-    sl->barg = (int32_t *)(sl->bmax + n / 16 + 16);
-    sl->fmd = (float *)(sl->barg + n / 16 + 16);
-    return 1;
-#else
-    (void)x; (void)y; (void)z; (void)n; (void)k; (void)buf; (void)sl;
-    return 0;
-#endif
-}

@@ -56,7 +56,7 @@ typedef struct agg_job {
     const float *px, *py, *pz, *qx, *qy, *qz;
     int64_t n;
     float guess;          /* pgn_knn_guess of the points: the same for every chunk */
-    const knn_slab *slab; /* the points sorted along an axis (pgn_knn_slab), or NULL */
+    const pgn_slab *slab; /* the points in buckets along an axis (pgn_slab.c), or NULL */
     int32_t *nb_out;
     float *dist[2];
     uint64_t *keys[2];
