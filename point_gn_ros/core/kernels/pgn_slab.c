@@ -8,9 +8,14 @@
 
 #include "pgn_geom.h"
 
-/* Scratch floats pgn_slab_build needs for n points. */
+/* Floats of the 16-bit indices (n + 32 of them), rounded up: what follows stays aligned. */
+static inline int64_t idx16_floats(int64_t n) { return (n + 33) / 2; }
+
+/* Scratch floats pgn_slab_build needs for n points: coordinates and indices (n + 16 each),
+ * buckets (n + 257 + 15), 16-bit indices, FPS's block maxima and indices (n / 16 + 16 each)
+ * and its distances (n + 16). */
 int64_t pgn_slab_floats(int64_t n) {
-    return 4 * (n + 16) + n + 257 + 15 + (n + 32) / 2 + 2 * (n / 16 + 16) + (n + 16) + 16;
+    return 4 * (n + 16) + n + 257 + 15 + idx16_floats(n) + 2 * (n / 16 + 16) + (n + 16);
 }
 
 /* The points in 256 buckets along their widest axis: a point's slab, the points near it on
@@ -73,7 +78,7 @@ int pgn_slab_build(const float *x, const float *y, const float *z, int64_t n, in
     sl->idx = idx;
     sl->idx16 = i16;
     sl->bend = cnt;
-    sl->bmax = (float *)(i16 + n + 32);
+    sl->bmax = (float *)(cnt + 257 + 15) + idx16_floats(n);
     sl->barg = (int32_t *)(sl->bmax + n / 16 + 16);
     sl->fmd = (float *)(sl->barg + n / 16 + 16);
     return 1;
