@@ -21,6 +21,7 @@ import pstats
 import threading
 import time
 import timeit
+from typing import Any
 
 import numpy as np
 import torch
@@ -37,6 +38,32 @@ from point_gn_ros.pointcloud2 import make_classifications, xyz_to_pointcloud2
 from point_gn_ros.recognizer import Recognizer, make_encoder
 
 
+def worker_pipeline(overrides: dict[str, Any], stop: threading.Event
+                    ) -> tuple[Any, FeatureBank, Pipeline]:
+    """The node's worker pipeline on the shipped bank -> (settings, bank, pipeline).
+
+    Default parameters updated by overrides, one input topic, the recognizer warmed up.
+    """
+    values = {name: default for name, (default, _, _) in PARAMETERS.items()}
+    s = settings_from_values(values | overrides | {'input_topics': ['objects']})
+    torch.set_num_threads(s.torch_threads)
+    bank = FeatureBank.load(None)
+    rec = Recognizer(bank, 'cpu', s.resample, s.top_k, s.unknown_threshold or None,
+                     encoder=make_encoder(bank.config, 'cpu', threads=s.encoder_threads),
+                     search=s.search)
+    rec.warmup()
+    pipe = Pipeline(rec, s, NodeStats(1), lambda key, text: True, stop)
+    pipe.frame_rotation = UpConvention(s.up_axis)
+    return s, bank, pipe
+
+
+def classifications_of(a: Answer) -> Any:
+    """The answer's ~/classifications message, built as the node builds it."""
+    return make_classifications(a.job.item.payload.header, a.centroids, a.labels, a.scores,
+                                a.topk_ids, a.topk_scores,
+                                np.asarray(a.job.segment_ids, dtype=np.int64), 0)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--messages', type=int, default=200)
@@ -48,26 +75,13 @@ def main() -> None:
     args = p.parse_args()
     from std_msgs.msg import Header
 
-    values = {name: default for name, (default, _, _) in PARAMETERS.items()}
-    s = settings_from_values(values | {'input_topics': ['objects']})
-    torch.set_num_threads(s.torch_threads)
-    bank = FeatureBank.load(None)
-    rec = Recognizer(bank, 'cpu', s.resample, s.top_k, s.unknown_threshold or None,
-                     encoder=make_encoder(bank.config, 'cpu', threads=s.encoder_threads),
-                     search=s.search)
-    rec.warmup()
-    pipe = Pipeline(rec, s, NodeStats(1), lambda key, text: True, threading.Event())
-    pipe.frame_rotation = UpConvention(s.up_axis)
+    s, bank, pipe = worker_pipeline({}, threading.Event())
     objects = load_demo_objects()
     rng = np.random.default_rng(0)
     whole = [place_in_sensor_frame(x, rng) for x in objects.xyz]
     scans = [place_in_sensor_frame(x, rng, single_view=True) for x in objects.xyz]
     msgs = [xyz_to_pointcloud2(Header(frame_id='sensor'), x) for x in whole]
-
-    def publish(a: Answer) -> None:
-        make_classifications(a.job.item.payload.header, a.centroids, a.labels, a.scores,
-                             a.topk_ids, a.topk_scores,
-                             np.asarray(a.job.segment_ids, dtype=np.int64), 0)
+    publish = classifications_of
 
     def run(n: int) -> list[float]:
         """Process n messages in batches -> each batch's wall time (s), paced by --rate."""

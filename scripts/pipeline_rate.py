@@ -17,18 +17,13 @@ import threading
 import time
 
 import numpy as np
-import torch
+from node_path_time import classifications_of, worker_pipeline  # scripts/, beside this one
 
-from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
-from point_gn_ros.node.frames import UpConvention
-from point_gn_ros.node.params import PARAMETERS, settings_from_values
-from point_gn_ros.node.pipeline import Answer, Pipeline
-from point_gn_ros.node.stats import NodeStats
+from point_gn_ros.node.params import PARAMETERS
+from point_gn_ros.node.pipeline import Answer
 from point_gn_ros.node.work_queue import WorkQueue
-from point_gn_ros.pointcloud2 import make_classifications, xyz_to_pointcloud2
-from point_gn_ros.recognizer import Recognizer, make_encoder
-
+from point_gn_ros.pointcloud2 import xyz_to_pointcloud2
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
@@ -39,20 +34,12 @@ def main() -> None:
     args = p.parse_args()
     from std_msgs.msg import Header
 
-    values = {name: default for name, (default, _, _) in PARAMETERS.items()}
+    overrides = {}
     for item in args.params:
         name, value = item.split('=', 1)
-        values[name] = type(values[name])(value)
-    s = settings_from_values(values | {'input_topics': ['objects']})
-    torch.set_num_threads(s.torch_threads)
-    bank = FeatureBank.load(None)
-    rec = Recognizer(bank, 'cpu', s.resample, s.top_k, s.unknown_threshold or None,
-                     encoder=make_encoder(bank.config, 'cpu', threads=s.encoder_threads),
-                     search=s.search)
-    rec.warmup()
+        overrides[name] = type(PARAMETERS[name][0])(value)
     stop = threading.Event()
-    pipe = Pipeline(rec, s, NodeStats(1), lambda key, text: True, stop)
-    pipe.frame_rotation = UpConvention(s.up_axis)
+    s, _, pipe = worker_pipeline(overrides, stop)
     rng = np.random.default_rng(0)
     msgs = [xyz_to_pointcloud2(Header(frame_id='sensor'), place_in_sensor_frame(x, rng))
             for x in load_demo_objects().xyz]
@@ -60,9 +47,7 @@ def main() -> None:
     answered = [0]
 
     def publish(a: Answer) -> None:
-        make_classifications(a.job.item.payload.header, a.centroids, a.labels, a.scores,
-                             a.topk_ids, a.topk_scores,
-                             np.asarray(a.job.segment_ids, dtype=np.int64), 0)
+        classifications_of(a)
         answered[0] += 1
 
     def feed() -> None:
@@ -75,14 +60,18 @@ def main() -> None:
             next_t += 5 / args.rate
             time.sleep(max(0.0, next_t - time.monotonic()))
 
-    threading.Thread(target=pipe.serve, args=(queue, publish), daemon=True).start()
-    threading.Thread(target=feed, daemon=True).start()
+    worker = threading.Thread(target=pipe.serve, args=(queue, publish), daemon=True)
+    feeder = threading.Thread(target=feed, daemon=True)
+    worker.start()
+    feeder.start()
     time.sleep(args.warmup)
     a0, c0, t0 = answered[0], time.process_time(), time.monotonic()
     time.sleep(args.seconds)
     a1, c1, t1 = answered[0], time.process_time(), time.monotonic()
     stop.set()
     queue.close()
+    feeder.join()
+    worker.join()   # out of the encoder's C code before the interpreter ends
     n = max(a1 - a0, 1)
     print(f'{(a1 - a0) / (t1 - t0):.1f} answers/s, {(c1 - c0) / (t1 - t0):.2f} cores busy, '
           f'{(c1 - c0) / n * 1e3:.2f} ms CPU an answer; {" ".join(args.params) or "defaults"}')

@@ -187,6 +187,18 @@ static inline void fps_merge16(__m512 *bv, __m512i *bi, __m512 v, __m512i i) {
     *bi = _mm512_mask_mov_epi32(*bi, take, i);
 }
 
+/* Squared distances of points o..o+15 (SoA x, y, z) to (vx, vy, vz), rounded as the oracle's:
+ * (dx*dx + dy*dy) + dz*dz, each product and sum a float32. */
+static inline __m512 sqdist16(const float *x, const float *y, const float *z, int64_t o,
+                              __m512 vx, __m512 vy, __m512 vz) {
+    const __m512 dx = _mm512_sub_ps(_mm512_loadu_ps(x + o), vx);
+    const __m512 dy = _mm512_sub_ps(_mm512_loadu_ps(y + o), vy);
+    const __m512 dz = _mm512_sub_ps(_mm512_loadu_ps(z + o), vz);
+    __m512 d = _mm512_mul_ps(dx, dx);
+    d = _mm512_add_ps(d, _mm512_mul_ps(dy, dy));
+    return _mm512_add_ps(d, _mm512_mul_ps(dz, dz));
+}
+
 static void fps_from_avx512(const float *x, const float *y, const float *z, int64_t n,
                             int64_t m, int64_t cur, int64_t *idx, float *min_d) {
     const int64_t n64 = n / 64 * 64;
@@ -206,12 +218,7 @@ static void fps_from_avx512(const float *x, const float *y, const float *z, int6
         for (int64_t i = 0; i < n64; i += 64) {
             for (int j = 0; j < 4; ++j) {
                 const int64_t o = i + 16 * j;
-                const __m512 dx = _mm512_sub_ps(_mm512_loadu_ps(x + o), vx);
-                const __m512 dy = _mm512_sub_ps(_mm512_loadu_ps(y + o), vy);
-                const __m512 dz = _mm512_sub_ps(_mm512_loadu_ps(z + o), vz);
-                __m512 d = _mm512_mul_ps(dx, dx);
-                d = _mm512_add_ps(d, _mm512_mul_ps(dy, dy));
-                d = _mm512_add_ps(d, _mm512_mul_ps(dz, dz));
+                const __m512 d = sqdist16(x, y, z, o, vx, vy, vz);
                 /* the first step starts from +inf in the oracle: min(inf, d) = d */
                 const __m512 md = it == 0 ? d : _mm512_min_ps(d, _mm512_loadu_ps(min_d + o));
                 _mm512_storeu_ps(min_d + o, md);
@@ -315,12 +322,7 @@ static void fps_slab(const pgn_slab *sl, const float *x, const float *y, const f
         }
         for (int64_t k = k0; k < k1; ++k) {
             const int64_t o = 16 * k;
-            const __m512 dx = _mm512_sub_ps(_mm512_loadu_ps(sx + o), vx);
-            const __m512 dy = _mm512_sub_ps(_mm512_loadu_ps(sy + o), vy);
-            const __m512 dz = _mm512_sub_ps(_mm512_loadu_ps(sz + o), vz);
-            __m512 d = _mm512_mul_ps(dx, dx);
-            d = _mm512_add_ps(d, _mm512_mul_ps(dy, dy));
-            d = _mm512_add_ps(d, _mm512_mul_ps(dz, dz));
+            const __m512 d = sqdist16(sx, sy, sz, o, vx, vy, vz);
             __m512 v;
             if (it == 0) {  /* from +inf: min(inf, d) = d; the last block's slack: -1 */
                 const __mmask16 in = n - o >= 16 ? (__mmask16)0xffff
