@@ -79,24 +79,24 @@ static inline __attribute__((always_inline)) void sep_group16(
     /* one or two blocks: two neighbours a step into two sets of chains, so that the
      * latencies overlap */
     const int U = NB <= 2 ? 2 : 1;
-    __m512 vmx[2][4], vsm[2][4], g[4], gs[4], rt[4];
-    __m512i pmx[2][4], pmn[2][4];
+    __m512 vmx[2][4], vsm[2][4], pmx[2][4], g[4], gs[4], rt[4];
     for (int b = 0; b < NB; ++b) {
         for (int u = 0; u < U; ++u) {
             vmx[u][b] = kind == SEP_CTR ? _mm512_setzero_ps() : _mm512_set1_ps(-INFINITY);
             vsm[u][b] = _mm512_setzero_ps();
-            pmx[u][b] = _mm512_setzero_si512();                /* +0 */
-            pmn[u][b] = _mm512_set1_epi32(0x7f800000);         /* +inf */
+            pmx[u][b] = _mm512_setzero_ps();
         }
         g[b] = _mm512_loadu_ps(G + chs[b]);
         gs[b] = _mm512_loadu_ps(Gs + chs[b]);
         rt[b] = _mm512_loadu_ps(rT + chs[b]);
     }
     /* A centre block pools w = (gs + pe) pe, pe >= 0, convex in pe: its max over the
-     * neighbours is w at pe's largest or smallest value (integer max / min on the bits
-     * of non-negative floats, which do not compete with the float adds as a float max
-     * does), and its sum is gs sum(pe) + sum(pe^2) (vmx holds sum(pe^2) there). The max
-     * is the same bits as the max over every w. */
+     * neighbours is w at pe's largest or smallest value, and its sum is gs sum(pe) +
+     * sum(pe^2) (vmx holds sum(pe^2) there). The largest pe (ph) is a max in the loop. The
+     * smallest (pl) can win only where gs < -ph: w(pl) - w(ph) = (pl - ph)(pl + ph + gs).
+     * The centre's feature g >= -0.17 (a gelu) and the nearest neighbour's Gaussian is
+     * mostly near 1, so that is rare, and only such blocks take a second pass for pl: a min
+     * a step in every block cost more (BENCHMARKS.md, "2026-12-05, fifth session"). */
 #define PGN_STEP(u, t)                                                                     \
     do {                                                                                   \
         __m512 e_ = _mm512_load_ps(E16 + (t) * 16);                                        \
@@ -106,14 +106,15 @@ static inline __attribute__((always_inline)) void sep_group16(
             /* pe / T: T is folded into Gs, rT and the caller's final scaling */           \
             const __m512 pe = _mm512_mul_ps(_mm512_set1_ps(Ab[b][3 * (t)]), e_);           \
             if (kind == SEP_CTR) {                                                         \
-                const __m512i pb = _mm512_castps_si512(pe);                                \
-                pmx[u][b] = _mm512_max_epu32(pmx[u][b], pb);                               \
-                pmn[u][b] = _mm512_min_epu32(pmn[u][b], pb);                               \
+                pmx[u][b] = _mm512_max_ps(pmx[u][b], pe);                                  \
                 vsm[u][b] = _mm512_add_ps(vsm[u][b], pe);                                  \
                 vmx[u][b] = _mm512_fmadd_ps(pe, pe, vmx[u][b]);                            \
                 continue;                                                                  \
             }                                                                              \
-            const __m512 rw = _mm512_maskz_loadu_ps(off[b], row_ + chs[b]);                \
+            /* 16 floats whole, not under off's mask (a masked load cost a cycle a step): \
+             * lanes past the offset channels read padding or the next row (finite; the   \
+             * buffer has 16 floats of slack) and are blended away or never stored */     \
+            const __m512 rw = _mm512_loadu_ps(row_ + chs[b]);                              \
             __m512 f = _mm512_fmadd_ps(_mm512_sub_ps(rw, g[b]), rt[b], pe);                \
             if (kind == SEP_MIX) f = _mm512_mask_blend_ps(off[b], _mm512_add_ps(gs[b], pe), f); \
             const __m512 w = _mm512_mul_ps(f, pe);                                         \
@@ -130,20 +131,25 @@ static inline __attribute__((always_inline)) void sep_group16(
     for (; t < K; ++t) PGN_STEP(0, t);
 #undef PGN_STEP
     for (int b = 0; b < NB; ++b) {
-        __m512 m = vmx[0][b], sv = vsm[0][b];
-        __m512i hi = pmx[0][b], lo = pmn[0][b];
+        __m512 m = vmx[0][b], sv = vsm[0][b], ph = pmx[0][b];
         if (U == 2) {
             if (kind == SEP_CTR) {
                 m = _mm512_add_ps(m, vmx[U - 1][b]);
-                hi = _mm512_max_epu32(hi, pmx[U - 1][b]);
-                lo = _mm512_min_epu32(lo, pmn[U - 1][b]);
+                ph = _mm512_max_ps(ph, pmx[U - 1][b]);
             } else {
                 m = _mm512_max_ps(m, vmx[U - 1][b]);
             }
             sv = _mm512_add_ps(sv, vsm[U - 1][b]);
         }
         if (kind == SEP_CTR) {
-            const __m512 ph = _mm512_castsi512_ps(hi), pl = _mm512_castsi512_ps(lo);
+            __m512 pl = ph;   /* w(ph) >= w(pl) where gs >= -ph */
+            if (_mm512_mask_cmp_ps_mask(valid[b], gs[b], _mm512_sub_ps(_mm512_setzero_ps(), ph),
+                                        _CMP_LT_OQ)) {
+                pl = _mm512_set1_ps(INFINITY);
+                for (int64_t t = 0; t < K; ++t)
+                    pl = _mm512_min_ps(pl, _mm512_mul_ps(_mm512_set1_ps(Ab[b][3 * t]),
+                                                         _mm512_load_ps(E16 + t * 16)));
+            }
             sv = _mm512_fmadd_ps(gs[b], sv, m);
             m = _mm512_max_ps(_mm512_mul_ps(_mm512_add_ps(gs[b], ph), ph),
                               _mm512_mul_ps(_mm512_add_ps(gs[b], pl), pl));
