@@ -169,16 +169,20 @@ static void sep_centre16(const sep_t *fx, int64_t D, const float *feat, int64_t 
     const __m256 one8 = _mm256_set1_ps(1.0f);
     for (int a = 0; a < 3; ++a) {
         /* this axis's powers, P^0..15 of each neighbour (E16 stays small in L1) */
+        const float *restrict E1 = fx->E + nta, *restrict E2 = fx->E + 2 * nta;
+        const float *restrict E4 = fx->E + 4 * nta, *restrict E8 = fx->E + 8 * nta;
         for (int64_t t = 0; t < K; ++t) {
             /* P^0..7 in 256 bits (half the cost of 512-bit multiplies), then the upper
-             * half times P^8: the same products as four masked 512-bit steps */
+             * half times P^8: the same products as four masked 512-bit steps; stored as two
+             * halves (an insert into one 512-bit store cost more) */
             const int64_t ta = 3 * t + a;
             __m256 v = one8;
-            v = _mm256_mask_mul_ps(v, 0xAA, v, _mm256_set1_ps(fx->E[1 * nta + ta]));
-            v = _mm256_mask_mul_ps(v, 0xCC, v, _mm256_set1_ps(fx->E[2 * nta + ta]));
-            v = _mm256_mask_mul_ps(v, 0xF0, v, _mm256_set1_ps(fx->E[4 * nta + ta]));
-            const __m256 hi = _mm256_mul_ps(v, _mm256_set1_ps(fx->E[8 * nta + ta]));
-            _mm512_store_ps(E16 + t * 16, _mm512_insertf32x8(_mm512_castps256_ps512(v), hi, 1));
+            v = _mm256_mask_mul_ps(v, 0xAA, v, _mm256_set1_ps(E1[ta]));
+            v = _mm256_mask_mul_ps(v, 0xCC, v, _mm256_set1_ps(E2[ta]));
+            v = _mm256_mask_mul_ps(v, 0xF0, v, _mm256_set1_ps(E4[ta]));
+            const __m256 hi = _mm256_mul_ps(v, _mm256_set1_ps(E8[ta]));
+            _mm256_store_ps(E16 + t * 16, v);
+            _mm256_store_ps(E16 + t * 16 + 8, hi);
         }
         int64_t m = 0;
         while (m < M) {
