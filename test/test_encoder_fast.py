@@ -258,6 +258,25 @@ def test_simd_build_matches_the_cpu() -> None:
     assert kernels.simd_width() == expected
 
 
+def test_kernel_gelu_matches_erf_gelu() -> None:
+    # the stages' gelu (AVX-512: a piecewise polynomial of erf; elsewhere libmvec's erff)
+    # against torch's exact-erf gelu in double, over the whole float range: within about an
+    # ULP of erf near 1 times |x| / 2, exactly 0 far below 0, exactly x far above
+    _kernels_or_skip()
+    x = np.concatenate([np.linspace(-12.0, 12.0, 240_001),
+                        [0.0, -0.0, 1e-30, -1e-30, 5.54, -5.54, 5.55, -5.55, 100.0, -100.0,
+                         1e6, -1e6, 3e38, -3e38]]).astype(np.float32)
+    y = x.copy()
+    kernels.load().pgn_gelu(y.ctypes.data, len(y))
+    ref = torch.nn.functional.gelu(torch.from_numpy(x).double()).numpy()
+    err = np.abs(y.astype(np.float64) - ref)
+    assert np.all(err <= 1.5e-7 * np.maximum(1.0, np.abs(x))), float((err / np.maximum(
+        1.0, np.abs(x))).max())
+    far = np.abs(x) >= 6.0
+    assert np.all(y[far & (x < 0)] == 0.0) and np.all(y[far & (x > 0)] == x[far & (x > 0)])
+    assert np.all(y[x == 0.0] == 0.0)
+
+
 def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.ndarray,
                                       naive_real: np.ndarray) -> None:
     # The AVX2 + FMA kernels (pgn_avx2.c, pgn_avx2_d18.c: stage 1, separable stages, feature

@@ -225,6 +225,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_simd_width.argtypes = []
     lib.pgn_encode.restype = ctypes.c_int
     lib.pgn_encode.argtypes = [p, i64, i64, i64, i64, i64, f32, p, i64, p]
+    lib.pgn_gelu.restype = None
+    lib.pgn_gelu.argtypes = [p, i64]
     lib.pgn_encode_lone.restype = ctypes.c_int
     lib.pgn_encode_lone.argtypes = [p, i64, i64, i64, i64, f32, p, i64, p]
     lib.pgn_fps.restype = None

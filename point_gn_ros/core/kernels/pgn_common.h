@@ -32,10 +32,11 @@ static inline float gelu(float x) { return 0.5f * x * (1.0f + erff(x * 0.7071067
  * and thread invariance). Zero padding stays 0 (gelu(0) = 0).
  * AVX-512: erf(u), u = |x| / sqrt(2) < 4, by a degree-5 polynomial on each of 16 intervals
  * of width 1/4 (coefficients by interval in the lanes, picked by one permute each), in
- * t = u - the interval's middle; u >= 4 takes the last interval's value at 4, which is 1 in
- * float, as erf is. Fitted here (least squares, reweighted towards equal ripple) in double:
- * 6e-9 off erf, 6e-8 (an ulp near 1) as evaluated in float. libmvec's erff took 0.086 ms a
- * cloud, this 0.02 (BENCHMARKS.md). Elsewhere libmvec's erff. */
+ * t = u - the interval's middle; from u = 3.919206, where erf rounds to 1 in float, exactly
+ * 1, so that gelu is exactly 0 below about -5.5 (0.99999994 there would leave x 3e-8).
+ * Fitted here (least squares, reweighted towards equal ripple) in double: 6e-9 off erf, 6e-8
+ * (an ulp near 1) as evaluated in float. libmvec's erff took 0.086 ms a cloud (BENCHMARKS.md).
+ * Elsewhere libmvec's erff. */
 static inline void gelu_rows(float *p, int64_t n) {
     float *q = (float *)__builtin_assume_aligned(p, 64);
 #if defined(__AVX512F__)
@@ -69,6 +70,7 @@ static inline void gelu_rows(float *p, int64_t n) {
     const __m512 rs2 = _mm512_set1_ps(0.70710678118654752f), half = _mm512_set1_ps(0.5f);
     const __m512 top = _mm512_set1_ps(3.99999976f), four = _mm512_set1_ps(4.0f);
     const __m512 quarter = _mm512_set1_ps(0.25f), eighth = _mm512_set1_ps(0.125f);
+    const __m512 sat = _mm512_set1_ps(3.919206f), one = _mm512_set1_ps(1.0f);
     const __m512i sign = _mm512_set1_epi32((int)0x80000000u);
     for (int64_t i = 0; i < n; i += 16) {
         const __m512 x = _mm512_load_ps(q + i);
@@ -82,6 +84,7 @@ static inline void gelu_rows(float *p, int64_t n) {
         e = _mm512_fmadd_ps(e, t, _mm512_permutexvar_ps(j, c2));
         e = _mm512_fmadd_ps(e, t, _mm512_permutexvar_ps(j, c1));
         e = _mm512_fmadd_ps(e, t, _mm512_permutexvar_ps(j, c0));
+        e = _mm512_mask_mov_ps(e, _mm512_cmp_ps_mask(u, sat, _CMP_GE_OQ), one);
         /* erf is odd: x's sign onto e >= 0 */
         e = _mm512_castsi512_ps(_mm512_or_si512(
             _mm512_castps_si512(e), _mm512_and_si512(_mm512_castps_si512(x), sign)));
