@@ -55,7 +55,10 @@ def test_bench_node_reports_rates_latency_and_memory(tiny_bank: Path) -> None:
     assert steady['sent'] >= 25 and steady['answered'] >= 0.8 * steady['sent']
     assert 0 < steady['latency_p50_ms'] <= steady['latency_p99_ms']
     assert burst['input_hz'] > 5 * steady['input_hz']
-    assert burst['dropped'] > 0 and burst['answered'] > 0      # bounded queues shed load
+    # Whether the burst outruns the node depends on the host (since 2026-12-05 the node can
+    # keep pace with this small bank's clouds); shedding under overload is
+    # test_node_segments_overload's. Here: answers came, and the counters below agree.
+    assert burst['answered'] > 0 and burst['dropped'] == burst['sent'] - burst['answered']
     # The node's own counters: at 20/s it took every message; under the burst no more than
     # were sent, and it answered only what it took.
     assert steady['node_taken'] == steady['sent']
