@@ -91,10 +91,10 @@ static inline void gelu_rows(float *p, int64_t n) {
         const __m512 hx = _mm512_mul_ps(x, half);
         _mm512_store_ps(q + i, _mm512_fmadd_ps(hx, e, hx));
     }
-    return;
-#endif
+#else
 #pragma omp simd simdlen(16)
     for (int64_t i = 0; i < n; ++i) q[i] = gelu(q[i]);
+#endif
 }
 
 /* Separable Gaussians on a uniform grid of n centres b_0 + j h (j < n):

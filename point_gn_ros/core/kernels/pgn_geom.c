@@ -187,18 +187,6 @@ static inline void fps_merge16(__m512 *bv, __m512i *bi, __m512 v, __m512i i) {
     *bi = _mm512_mask_mov_epi32(*bi, take, i);
 }
 
-/* Squared distances of points o..o+15 (SoA x, y, z) to (vx, vy, vz), rounded as the oracle's:
- * (dx*dx + dy*dy) + dz*dz, each product and sum a float32. */
-static inline __m512 sqdist16(const float *x, const float *y, const float *z, int64_t o,
-                              __m512 vx, __m512 vy, __m512 vz) {
-    const __m512 dx = _mm512_sub_ps(_mm512_loadu_ps(x + o), vx);
-    const __m512 dy = _mm512_sub_ps(_mm512_loadu_ps(y + o), vy);
-    const __m512 dz = _mm512_sub_ps(_mm512_loadu_ps(z + o), vz);
-    __m512 d = _mm512_mul_ps(dx, dx);
-    d = _mm512_add_ps(d, _mm512_mul_ps(dy, dy));
-    return _mm512_add_ps(d, _mm512_mul_ps(dz, dz));
-}
-
 static void fps_from_avx512(const float *x, const float *y, const float *z, int64_t n,
                             int64_t m, int64_t cur, int64_t *idx, float *min_d) {
     const int64_t n64 = n / 64 * 64;

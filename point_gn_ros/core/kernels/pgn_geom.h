@@ -7,6 +7,9 @@
 
 #include <math.h>
 #include <stdint.h>
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 void pgn_fps(const float *xyz, const float *x, const float *y, const float *z, int64_t n,
              int64_t m, int64_t *idx, float *min_d);
@@ -43,6 +46,20 @@ static inline void pgn_slab_range(const pgn_slab *sl, float qa, float f, int64_t
     *p0 = b0 ? sl->bend[b0 - 1] : 0;
     *p1 = sl->bend[b1];
 }
+#if defined(__AVX512F__)
+/* Squared distances of points o..o+15 (SoA x, y, z) to (vx, vy, vz), rounded as the oracle's:
+ * (dx*dx + dy*dy) + dz*dz, each product and sum a float32. For FPS and the kNN, which are
+ * built without fast-math (in a fast-math file the compiler could fuse them). */
+static inline __m512 sqdist16(const float *x, const float *y, const float *z, int64_t o,
+                              __m512 vx, __m512 vy, __m512 vz) {
+    const __m512 dx = _mm512_sub_ps(_mm512_loadu_ps(x + o), vx);
+    const __m512 dy = _mm512_sub_ps(_mm512_loadu_ps(y + o), vy);
+    const __m512 dz = _mm512_sub_ps(_mm512_loadu_ps(z + o), vz);
+    __m512 d = _mm512_mul_ps(dx, dx);
+    d = _mm512_add_ps(d, _mm512_mul_ps(dy, dy));
+    return _mm512_add_ps(d, _mm512_mul_ps(dz, dz));
+}
+#endif
 int64_t pgn_slab_floats(int64_t n);
 int pgn_slab_build(const float *x, const float *y, const float *z, int64_t n, int64_t k,
                    float *buf, pgn_slab *sl);

@@ -56,13 +56,8 @@ static int codes_centre(const float *x, const float *y, const float *z, int64_t 
     __m512i n1 = _mm512_setzero_si512(), n2 = n1;
     __m512 vmax = _mm512_setzero_ps();
     int64_t i = 0;
-    for (; i + 16 <= n; i += 16) {  /* the oracle's rounding: three products, two sums */
-        const __m512 dx = _mm512_sub_ps(px, _mm512_loadu_ps(x + i));
-        const __m512 dy = _mm512_sub_ps(py, _mm512_loadu_ps(y + i));
-        const __m512 dz = _mm512_sub_ps(pz, _mm512_loadu_ps(z + i));
-        __m512 d = _mm512_mul_ps(dx, dx);
-        d = _mm512_add_ps(d, _mm512_mul_ps(dy, dy));
-        d = _mm512_add_ps(d, _mm512_mul_ps(dz, dz));
+    for (; i + 16 <= n; i += 16) {  /* the oracle's rounding (a difference's sign is exact) */
+        const __m512 d = sqdist16(x, y, z, i, px, py, pz);
         _mm512_storeu_ps(dist + i, d);
         _mm256_storeu_si256((__m256i *)(h + i), _mm512_cvtepi32_epi16(
             _mm512_srli_epi32(_mm512_castps_si512(d), 16)));
