@@ -177,7 +177,12 @@ def test_degenerate_clouds_match_oracle(encoder: PointGNEncoder, name: str) -> N
     # near the edge chain_ok allows (|q| (sqrt(87 / |q|) - 2)^2 = 30.3 against 30)
     EncoderConfig(num_points=256, init_dim=48, stages=2, k=60, sigma=0.6),
     EncoderConfig(num_points=256, init_dim=48, stages=2, k=60, sigma=0.37),
-], ids=['small', 'odd_sizes', 'sigma_0.1', 'sigma_0.05', 'sigma_0.6', 'sigma_0.37'])
+    # stage 1's rows from the points (AVX-512's lanes_init_t): two blocks an axis for the
+    # initial Gaussians (sigma 0.2), and 10 of them an axis
+    EncoderConfig(num_points=512, init_dim=27, stages=2, k=60, sigma=0.2),
+    EncoderConfig(num_points=256, init_dim=30, stages=2, k=50, sigma=0.5),
+], ids=['small', 'odd_sizes', 'sigma_0.1', 'sigma_0.05', 'sigma_0.6', 'sigma_0.37',
+        'init_two_blocks', 'init_30'])
 def test_other_configs_match_oracle(cfg: EncoderConfig) -> None:
     _kernels_or_skip()
     rng = np.random.default_rng(3)

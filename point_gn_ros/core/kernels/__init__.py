@@ -50,7 +50,9 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_stage.c': ['-ffast-math'],
             'pgn_avx512.c': ['-ffast-math'],
             'pgn_avx512_sep.c': ['-ffast-math'],  # the separable stages 2-4 on AVX-512
-            'pgn_avx512_lanes.c': ['-ffast-math'],  # stage 1 with neighbours in the lanes
+            # stage 1 with neighbours in the lanes; no contraction: its init_rows must
+            # round a centre and its neighbours alike
+            'pgn_avx512_lanes.c': ['-ffast-math', '-ffp-contract=off'],
             'pgn_avx2.c': ['-ffast-math'],  # AVX2 + FMA stage loops (CPUs without AVX-512)
             'pgn_avx2_d18.c': ['-ffast-math'],  # AVX2 stage 1 with derived Gaussians
             'pgn_avx2_lanes.c': ['-ffast-math'],  # AVX2 stage 1, neighbours in the lanes

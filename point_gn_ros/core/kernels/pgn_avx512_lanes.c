@@ -46,15 +46,52 @@ PGN_RED16(red16_add, _mm512_add_ps)
 
 #define NG 8  /* groups of 16 neighbours held in registers: 128 neighbours a chunk */
 
-/* feat, cidx, nb, vx, r, out as pgn_stage_aggregate; lp: pgn_lanes_plan's blocks for the
- * 2D / 3 Gaussians per axis; scr: pgn_lanes_scratch(K) floats, 64-byte aligned. */
+#ifndef IRG
+#define IRG 4  /* groups of neighbours per init_rows call (8 spills) */
+#endif
+/* The initial Gaussians of the three axes of ng (1 to IRG) groups at coordinates w[3 i + a]
+ * (16 lanes each, clamped to +-W), blockwise U_j = A_m P^l as in the pe chain (the 3 ng
+ * chains interleaved): group i's row a n + j (n = lp->nc) at out + i 16 + (a n + j) stride
+ * = U_j - csub[a n + j] in the lanes of vm[i], else 0. Not inlined, and its file built
+ * with -ffp-contract=off: a centre (csub 0) and its neighbours then take the same
+ * operations, so a neighbour on the centre's point gives the centre's U bit for bit and an
+ * offset of exactly 0, as the rows' table does. */
+__attribute__((noinline)) static void init_rows(const __m512 *w, int ng, const lanes_t *lp,
+                                                const float *csub, const __mmask16 *vm,
+                                                float *out, int64_t stride) {
+    const __m512 ql = _mm512_set1_ps(lp->ql), nh2ql = _mm512_set1_ps(-lp->h2ql);
+    const int64_t n = lp->nc, B = lp->B, nblk = lp->nblk;
+    const int nv = 3 * ng;
+    const float *bb = lp->b;
+    __m512 P[3 * IRG], U[3 * IRG];
+    for (int v = 0; v < nv; ++v) P[v] = exp2_neg_avx512(_mm512_mul_ps(nh2ql, w[v]));
+    for (int64_t m = 0; m < nblk; ++m) {
+        const __m512 bm = _mm512_set1_ps(bb[m]);
+        for (int v = 0; v < nv; ++v) {
+            const __m512 u = _mm512_sub_ps(bm, w[v]);
+            U[v] = exp2_neg_avx512(_mm512_mul_ps(_mm512_mul_ps(u, u), ql));
+        }
+        const int64_t j0 = m * B, L = n - j0 < B ? n - j0 : B;
+        for (int64_t l = 0; l < L; ++l) {
+            for (int v = 0; v < nv; ++v) {
+                const int i = v / 3;
+                const int64_t j = (v - 3 * i) * n + j0 + l;
+                _mm512_store_ps(out + 16 * i + j * stride,
+                                _mm512_maskz_sub_ps(vm[i], U[v], _mm512_set1_ps(csub[j])));
+                U[v] = _mm512_mul_ps(U[v], P[v]);
+            }
+        }
+    }
+}
+
 void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
-                                float r, const lanes_t *lp, float *out, float *scr) {
+                                float r, const lanes_t *lp, const lanes_init_t *ini,
+                                float *out, float *scr) {
     const int64_t Dp = padded(D), D2 = 2 * D, D2p = padded(D2), nc = lp->nc;
     const int64_t G = (K + 15) / 16, Kc = (K + 16 * NG - 1) / (16 * NG) * (16 * NG);
     const int64_t Gc = Kc / 16;
-    float *RT = scr;            /* (D, Kc): (row - cf) r / T by channel, 0 past K */
+    float *RT = scr;            /* (D, Kc): row - cf by channel, 0 past K (times rs below) */
     float *WV = RT + D * Kc;    /* (3, Kc): clamped offsets by axis */
     float *MX = WV + 3 * Kc;    /* (2D, 16): per-lane max of each channel */
     float *SM = MX + 64 * 16;   /* (2D, 16): per-lane sum, then 64 floats of results */
@@ -77,13 +114,36 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
         }
         ia[a] = _mm512_loadu_si512((const void *)t);
     }
+    /* ini: a row's offset e_j = (U_j - U_j(centre)) T0_j (T0: the initial Gaussians' T),
+     * so its factor is T0 rs instead of rs; zero1: a centre's own U */
+    float sc[64] __attribute__((aligned(64))), zero1[64];
+    float cu[32 * 16] __attribute__((aligned(64))), cuj[32];
+    const int64_t n0 = ini ? ini->lp->nc : 0;
+    for (int64_t ch = 0; ch < 64; ++ch) {
+        sc[ch] = ch < 3 * n0 ? ini->lp->T[ch % n0] * rs[ch] : rs[ch];
+        zero1[ch] = 0.0f;
+    }
+    const __m512 vrx = _mm512_set1_ps(ini ? ini->rx : 1.0f);
     /* neighbours past K stay 0 in both tables (WV follows RT) */
     memset(RT, 0, sizeof(float) * (size_t)((D + 3) * Kc));
     for (int64_t c = 0; c < S; ++c) {
         const float *cf = feat + cidx[c] * Dp;
         const int32_t *nr = nb + c * K;
         const float *vc = vx + c * K * 3;
+        __m512 pc[3] = {zero, zero, zero};
+        if (ini) {
+            __m512 w[3];
+            for (int a = 0; a < 3; ++a) {
+                pc[a] = _mm512_set1_ps(ini->pts[cidx[c] * 3 + a]);
+                w[a] = _mm512_min_ps(_mm512_max_ps(pc[a], vnW), vW);
+            }
+            const __mmask16 all = 0xffff;
+            init_rows(w, 1, ini->lp, zero1, &all, cu, 16);
+            for (int64_t j = 0; j < 3 * n0; ++j) cuj[j] = cu[16 * j];
+        }
         /* the offsets by axis and the neighbours' rows by channel, 16 neighbours a step */
+        __m512 wg[3 * IRG];
+        __mmask16 vmg[IRG];
         for (int64_t g = 0; g < G; ++g) {
             const int64_t nv = K - 16 * g < 16 ? K - 16 * g : 16, nf = 3 * nv;
             const __mmask16 vm = (__mmask16)((1u << nv) - 1u);
@@ -95,11 +155,22 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
             const __m512 x0 = _mm512_maskz_loadu_ps(m0, vc + 48 * g);
             const __m512 x1 = _mm512_maskz_loadu_ps(m1, vc + 48 * g + 16);
             const __m512 x2 = _mm512_maskz_loadu_ps(m2, vc + 48 * g + 32);
+            __m512 *w = wg + 3 * (g % IRG);
             for (int a = 0; a < 3; ++a) {
                 __m512 v = _mm512_permutex2var_ps(x0, ia[a], x1);
                 v = _mm512_mask_permutexvar_ps(v, hi[a], ia[a], x2);
+                if (ini) {  /* v: the neighbours' points; their offsets as the other paths */
+                    w[a] = _mm512_min_ps(_mm512_max_ps(v, vnW), vW);
+                    v = _mm512_mul_ps(_mm512_sub_ps(v, pc[a]), vrx);
+                }
                 v = _mm512_maskz_mov_ps(vm, _mm512_min_ps(_mm512_max_ps(v, vnW), vW));
                 _mm512_store_ps(WV + a * Kc + 16 * g, v);
+            }
+            if (ini) {  /* the rows by pairs of groups */
+                vmg[g % IRG] = vm;
+                if (g % IRG == IRG - 1 || g == G - 1)
+                    init_rows(wg, 1 + (int)(g % IRG), ini->lp, cuj, vmg, RT + 16 * (g - g % IRG), Kc);
+                continue;
             }
             /* rows by channel, 4 channels at a time: 128-bit lane j of Y[m] holds row 4 j + m
              * (two 256-bit pairs of loads and one insert; broadcasts merged under masks took
@@ -128,9 +199,8 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
                                        _mm512_castpd_ps(_mm512_unpacklo_pd(t1, t3)),
                                        _mm512_castpd_ps(_mm512_unpackhi_pd(t1, t3))};
                 for (int64_t ch = 4 * k; ch < D && ch < 4 * k + 4; ++ch)
-                    _mm512_store_ps(RT + ch * Kc + 16 * g, _mm512_maskz_mul_ps(
-                        vm, _mm512_sub_ps(col[ch - 4 * k], _mm512_set1_ps(cf[ch])),
-                        _mm512_set1_ps(rs[ch])));
+                    _mm512_store_ps(RT + ch * Kc + 16 * g, _mm512_maskz_sub_ps(
+                        vm, col[ch - 4 * k], _mm512_set1_ps(cf[ch])));
             }
         }
         for (int64_t g0 = 0; g0 < Gc; g0 += NG) {
@@ -160,11 +230,13 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
                     for (int64_t l = 0; l < L; ++l) {
                         const int64_t ch = a * nc + m * lp->B + l;
                         __m512 mx = _mm512_set1_ps(-INFINITY), sm = zero;
-/* one channel over the chunk's groups: w = (f + U) U, f from RT (offset half) or the
- * centre's g (centre half); FULL: groups before the last have no padding lanes */
-#define PGN_CHANNEL(FULL, F)                                                               \
+/* one channel over the chunk's groups: w = (f + U) U, FU = f + U with f from RT times
+ * the channel's factor (offset half; a multiply-add where the centre half adds, which
+ * evens the block's multiply and add slots) or the centre's g (centre half); FULL: groups
+ * before the last have no padding lanes */
+#define PGN_CHANNEL(FULL, FU)                                                              \
     for (int i = 0; i < NG; ++i) {                                                         \
-        const __m512 w = _mm512_mul_ps(_mm512_add_ps((F), U[i]), U[i]);                   \
+        const __m512 w = _mm512_mul_ps((FU), U[i]);                                        \
         U[i] = _mm512_mul_ps(U[i], P[i]);                                                  \
         mx = (FULL) && i < NG - 1 ? _mm512_max_ps(mx, w)                                   \
                                   : _mm512_mask_max_ps(mx, vm[i], mx, w);                  \
@@ -172,17 +244,18 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
     }
                         if (ch < D) {
                             const float *rt = RT + ch * Kc + 16 * g0;
+                            const __m512 f = _mm512_set1_ps(sc[ch]);
                             if (head_full) {
-                                PGN_CHANNEL(1, _mm512_load_ps(rt + 16 * i))
+                                PGN_CHANNEL(1, _mm512_fmadd_ps(_mm512_load_ps(rt + 16 * i), f, U[i]))
                             } else {
-                                PGN_CHANNEL(0, _mm512_load_ps(rt + 16 * i))
+                                PGN_CHANNEL(0, _mm512_fmadd_ps(_mm512_load_ps(rt + 16 * i), f, U[i]))
                             }
                         } else {
                             const __m512 g = _mm512_set1_ps(cf[ch - D] * ct[ch]);
                             if (head_full) {
-                                PGN_CHANNEL(1, g)
+                                PGN_CHANNEL(1, _mm512_add_ps(g, U[i]))
                             } else {
-                                PGN_CHANNEL(0, g)
+                                PGN_CHANNEL(0, _mm512_add_ps(g, U[i]))
                             }
                         }
 #undef PGN_CHANNEL

@@ -181,14 +181,17 @@ void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
                               float r, const lanes_t *lp, float *out, float *scr);
 #endif
 #if defined(__AVX512F__)
-#define pgn_aggregate_lanes pgn_aggregate_lanes_avx512
-#elif defined(PGN_AVX2)
-#define pgn_aggregate_lanes pgn_aggregate_lanes_avx2
-#endif
-#if defined(__AVX512F__)
+/* Stage 1 on the initial embedding (AVX-512): the neighbours' rows from their points, not
+ * read and transposed. vx then holds the neighbours' points, not their offsets. */
+typedef struct {
+    const lanes_t *lp;  /* the initial Gaussians' blocks (D / 3 per axis) */
+    const float *pts;   /* the stage's points (n, 3): the centres' coordinates */
+    float rx;           /* 1 / std of the coordinate offsets */
+} lanes_init_t;
 void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
-                                float r, const lanes_t *lp, float *out, float *scr);
+                                float r, const lanes_t *lp, const lanes_init_t *ini,
+                                float *out, float *scr);
 #endif
 
 /* pgn_stage.c */

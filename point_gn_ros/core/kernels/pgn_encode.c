@@ -60,6 +60,12 @@ static float inv_std(const float *part, int64_t S, double count) {
     return (float)(1.0 / (sqrt(var) + 1e-5));
 }
 
+#if defined(PGN_NO_INI)
+#define PGN_INI_ROWS 0  /* for A/B timing: stage 1 reads and transposes its rows */
+#else
+#define PGN_INI_ROWS 1
+#endif
+
 static void *xalloc(size_t bytes) {
     /* 64-byte aligned, zeroed: padding lanes stay 0 (they enter sums as 0 - 0) */
     size_t sz = (bytes + 63) / 64 * 64;
@@ -204,6 +210,32 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             cx[c] = x[cidx[c]]; cy[c] = y[cidx[c]]; cz[c] = z[cidx[c]];
             cxyz[c * 3] = cx[c]; cxyz[c * 3 + 1] = cy[c]; cxyz[c * 3 + 2] = cz[c];
         }
+        /* blocks of 16 where the AVX-512 path runs and float range allows, else of 8; the
+         * kernels that fold T out (sep_centre16, AVX2's sep_pass8) also need tfold_ok */
+        int B = 0;
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
+        if (pgn_sep_ok(nc, (double)q, 16) && tfold_ok(nc, (double)q, 15)) B = 16;
+#endif
+#if defined(PGN_AVX2)
+        if (!B && pgn_sep_ok(nc, (double)q, 8) && tfold_ok(nc, (double)q, 7)) B = 8;
+#else
+        if (!B && pgn_sep_ok(nc, (double)q, 8)) B = 8;
+#endif
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
+        /* stage 1 (16 < D <= 32) with neighbours in the lanes where a block plan is safe */
+        lanes_t lanes;
+        float lanes_b[PGN_LANES_MAXC], lanes_T[PGN_LANES_MAXC];
+        const int use_lanes = !B && D > 16 && D <= 32
+                              && pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T);
+#endif
+#if defined(__AVX512F__) && !defined(PGN_NO_LANES)
+        /* on the initial embedding, its rows from the points (lanes_init_t) */
+        lanes_t ilanes;
+        float ilanes_b[PGN_LANES_MAXC], ilanes_T[PGN_LANES_MAXC];
+        lanes_init_t ini = {&ilanes, xyz, 1.0f};
+        const int use_ini = use_lanes && st == 0 && PGN_INI_ROWS
+                            && pgn_lanes_plan(D / 3, q, &ilanes, ilanes_b, ilanes_T);
+#endif
         /* each chunk of centres: their kNN rows, then their offset rows and float sums of
          * v and v^2 and of the feature offsets e and e^2 (added below in double in centre
          * order), in one step that a lone cloud shares with the helper; the aggregation's
@@ -223,6 +255,9 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         oj.keys[0] = keys; oj.keys[1] = keys2;
         oj.tail[0] = tails; oj.tail[1] = par ? tails + K1 + 16 : NULL;
         oj.offs = 1;
+#if defined(__AVX512F__) && !defined(PGN_NO_LANES)
+        oj.pts = use_ini;
+#endif
         oj.xyz = xyz; oj.qx = cx; oj.qy = cy; oj.qz = cz; oj.nb = nb; oj.S = S; oj.K = K;
         oj.vx_out = vx; oj.part = oparts; oj.nchunks = nch;
         oj.stdp = 1;
@@ -237,17 +272,6 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
         for (int64_t d = 0; d < D2; ++d) { cc[d] = cents[d % nc]; ax[d] = (int32_t)(d / nc); }
         sep_t fxs, *fx = NULL;
-        /* blocks of 16 where the AVX-512 path runs and float range allows, else of 8; the
-         * kernels that fold T out (sep_centre16, AVX2's sep_pass8) also need tfold_ok */
-        int B = 0;
-#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
-        if (pgn_sep_ok(nc, (double)q, 16) && tfold_ok(nc, (double)q, 15)) B = 16;
-#endif
-#if defined(PGN_AVX2)
-        if (!B && pgn_sep_ok(nc, (double)q, 8) && tfold_ok(nc, (double)q, 7)) B = 8;
-#else
-        if (!B && pgn_sep_ok(nc, (double)q, 8)) B = 8;
-#endif
         if (B) {
             /* grid from the exact linspace formula, in double, rounded once */
             const double h = 2.0 / (double)(nc + 1), b0 = -1.0 + h, qd = (double)q;
@@ -337,13 +361,17 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         }
 #endif
 #if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
-        /* stage 1 (16 < D <= 32) with neighbours in the lanes where a block plan is safe */
-        lanes_t lanes;
-        float lanes_b[PGN_LANES_MAXC], lanes_T[PGN_LANES_MAXC];
-        if (!fx && D > 16 && D <= 32 && pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T)) {
+        if (use_lanes) {
             job.lanes = &lanes;
             job.lscr[0] = lscr;
             job.lscr[1] = par ? lscr + LS : NULL;
+        }
+#endif
+#if defined(__AVX512F__) && !defined(PGN_NO_LANES)
+        if (use_ini) {  /* vx holds the points: not scaled */
+            ini.rx = rx;
+            job.ini = &ini;
+            job.vx_scale = NULL;
         }
 #endif
 #if defined(PGN_AVX2)

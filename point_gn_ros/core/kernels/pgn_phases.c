@@ -65,15 +65,54 @@ static void knn_chunk(agg_job *j, int tid, int64_t c0, int64_t c1) {
 
 /* Offsets of centres [c0, c1): v = xyz[nb] - centre (K, 3) per centre, and each centre's
  * float sums of v and v^2 into part[2 c], part[2 c + 1] (the caller adds them in double:
- * whichever thread ran a centre, the sums are the same bits). */
+ * whichever thread ran a centre, the sums are the same bits). pts (AVX-512 builds, for
+ * lanes_init_t): the neighbours' points go to vx instead, and the sums come from
+ * registers. */
 static void offsets_centres(const float *xyz, const float *cx, const float *cy,
                             const float *cz, const int32_t *nb, int64_t K, int64_t c0,
-                            int64_t c1, float *vx, float *part) {
+                            int64_t c1, float *vx, float *part, int pts) {
     for (int64_t c = c0; c < c1; ++c) {
         const float qx = cx[c], qy = cy[c], qz = cz[c];
         const int32_t *nr = nb + c * K;
         float *v = vx + c * K * 3;
         int64_t t = 0;
+#if defined(__AVX512F__)
+        if (pts) {
+            /* 4 floats a neighbour, the 4th (the next point's x) overwritten by the next
+             * store and kept out of the sums; the last neighbour by scalars, as below */
+            const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
+            const __m128 m3 = _mm_castsi128_ps(_mm_setr_epi32(-1, -1, -1, 0));
+            __m128 s1a = _mm_setzero_ps(), s1b = s1a, s2a = s1a, s2b = s1a;
+            for (; t + 2 < K; t += 2) {
+                const __m128 p4 = _mm_loadu_ps(xyz + (int64_t)nr[t] * 3);
+                const __m128 p5 = _mm_loadu_ps(xyz + (int64_t)nr[t + 1] * 3);
+                _mm_storeu_ps(v + t * 3, p4);
+                _mm_storeu_ps(v + t * 3 + 3, p5);
+                const __m128 d = _mm_and_ps(_mm_sub_ps(p4, q4), m3);
+                const __m128 e = _mm_and_ps(_mm_sub_ps(p5, q4), m3);
+                s1a = _mm_add_ps(s1a, d);
+                s1b = _mm_add_ps(s1b, e);
+                s2a = _mm_fmadd_ps(d, d, s2a);
+                s2b = _mm_fmadd_ps(e, e, s2b);
+            }
+            for (; t < K; ++t) {
+                const float *pj = xyz + (int64_t)nr[t] * 3;
+                v[t * 3] = pj[0]; v[t * 3 + 1] = pj[1]; v[t * 3 + 2] = pj[2];
+                const __m128 d = _mm_and_ps(
+                    _mm_sub_ps(_mm_setr_ps(pj[0], pj[1], pj[2], 0.0f), q4), m3);
+                s1a = _mm_add_ps(s1a, d);
+                s2a = _mm_fmadd_ps(d, d, s2a);
+            }
+            float a[4], b[4];
+            _mm_storeu_ps(a, _mm_add_ps(s1a, s1b));
+            _mm_storeu_ps(b, _mm_add_ps(s2a, s2b));
+            part[2 * c] = (a[0] + a[1]) + a[2];
+            part[2 * c + 1] = (b[0] + b[1]) + b[2];
+            continue;
+        }
+#else
+        (void)pts;
+#endif
 #if defined(PGN_AVX2) || defined(__AVX512F__)
         /* 4 floats in, 4 out per neighbour: the 4th is the next point's x (xyz has 4
          * floats of slack), overwritten by the next store; not for the last neighbour,
@@ -117,8 +156,13 @@ static void aggregate_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
     float *out = j->out + c0 * j->D2p;
 #if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
     if (j->lanes) {  /* stage 1 with neighbours in the lanes */
-        pgn_aggregate_lanes(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes, out,
-                            j->lscr[tid]);
+#if defined(__AVX512F__)
+        pgn_aggregate_lanes_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes,
+                                   j->ini, out, j->lscr[tid]);
+#else
+        pgn_aggregate_lanes_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes,
+                                 out, j->lscr[tid]);
+#endif
         return;
     }
 #endif
@@ -177,7 +221,8 @@ void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
         if (!j->offs) return;   /* else these centres' offsets next */
     }
     if (j->offs) {
-        offsets_centres(j->xyz, j->qx, j->qy, j->qz, j->nb, j->K, c0, c1, j->vx_out, j->part);
+        offsets_centres(j->xyz, j->qx, j->qy, j->qz, j->nb, j->K, c0, c1, j->vx_out, j->part,
+                        j->pts);
         if (j->stdp) std_centres(j, tid, c0, c1);
         return;
     }

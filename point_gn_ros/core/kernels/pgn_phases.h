@@ -44,6 +44,7 @@ typedef struct agg_job {
     int offs;
     const float *xyz;
     float *vx_out;
+    int pts;              /* vx_out gets the neighbours' points (lanes_init_t) */
     int stdp;
     int64_t Dp;
     float *part, *fpart;
@@ -75,6 +76,7 @@ typedef struct agg_job {
     const lanes_t *lanes;  /* stage 1 with neighbours in the lanes (SIMD builds), else NULL */
     float *lscr[2];        /* its scratch, per thread */
 #if defined(__AVX512F__)
+    const lanes_init_t *ini;  /* stage 1's rows from the points, or NULL */
     const float *ccs;
     const __mmask16 *m1, *m2;
     float sc;
