@@ -35,6 +35,41 @@ void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K) {
     const int64_t M = fx->M, nta = K * 3;
     float *w = fx->E;  /* row 0 of E (all ones) is filled last: use it for w meanwhile */
     const float W = fx->W;
+#if defined(__AVX512F__)
+    if (fx->C && fx->B == 16) {
+        /* AVX-512's stages 2-4 in one pass: the clamp, A_0 and P^16 by exponentials, then
+         * A_{m+1} = A_m (P^16 C_m) (sep_t: the factor off the chain, so a step waits for
+         * one multiply), and P, P^2, P^4, P^8 for sep_centre16 (P by the same 2^-t) */
+        const float l2e = 1.44269504088896341f;
+        const __m512 vb = _mm512_set1_ps(fx->b[0]), vs = _mm512_set1_ps(-fx->q * l2e);
+        const __m512 s16 = _mm512_set1_ps(-16.0f * fx->h2q * l2e);
+        const __m512 s1 = _mm512_set1_ps(-fx->h2q * l2e);
+        const __m512 vW = _mm512_set1_ps(W), vnW = _mm512_set1_ps(-W);
+        const float *restrict C = fx->C;
+        float *restrict A = fx->A, *restrict E = fx->E;
+        for (int64_t i = 0; i < nta; i += 16) {
+            const __mmask16 k = nta - i >= 16 ? (__mmask16)0xffff
+                                              : (__mmask16)((1u << (nta - i)) - 1u);
+            const __m512 wv = _mm512_min_ps(_mm512_max_ps(_mm512_maskz_loadu_ps(k, v + i),
+                                                          vnW), vW);
+            const __m512 u = _mm512_sub_ps(vb, wv);
+            __m512 a = exp2_neg_avx512(_mm512_mul_ps(_mm512_mul_ps(u, u), vs));
+            const __m512 p16 = exp2_neg_avx512(_mm512_mul_ps(s16, wv));
+            const __m512 p1 = exp2_neg_avx512(_mm512_mul_ps(s1, wv));
+            const __m512 p2 = _mm512_mul_ps(p1, p1), p4 = _mm512_mul_ps(p2, p2);
+            _mm512_mask_storeu_ps(E + nta + i, k, p1);
+            _mm512_mask_storeu_ps(E + 2 * nta + i, k, p2);
+            _mm512_mask_storeu_ps(E + 4 * nta + i, k, p4);
+            _mm512_mask_storeu_ps(E + 8 * nta + i, k, _mm512_mul_ps(p4, p4));
+            _mm512_mask_storeu_ps(A + i, k, a);
+            for (int64_t m = 1; m < M; ++m) {
+                a = _mm512_mul_ps(a, _mm512_mul_ps(p16, _mm512_set1_ps(C[m - 1])));
+                _mm512_mask_storeu_ps(A + m * nta + i, k, a);
+            }
+        }
+        return;
+    }
+#endif
 #pragma omp simd
     for (int64_t i = 0; i < nta; ++i) w[i] = v[i] < -W ? -W : (v[i] > W ? W : v[i]);
 #if defined(__AVX512F__)
