@@ -250,6 +250,21 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
                             } else {
                                 PGN_CHANNEL(0, _mm512_fmadd_ps(_mm512_load_ps(rt + 16 * i), f, U[i]))
                             }
+                        } else if (ini) {
+                            /* the initial embedding's centre half: g >= 0 and U >= 0, so
+                             * w = (g + U) U grows with U (and rounding keeps the order): a
+                             * lane's max is w at its largest U, its sum g sum(U) + sum(U^2) */
+                            const __m512 g = _mm512_set1_ps(cf[ch - D] * ct[ch]);
+                            __m512 s2 = zero;
+                            mx = zero;
+                            for (int i = 0; i < NG; ++i) {
+                                mx = _mm512_max_ps(mx, U[i]);
+                                sm = _mm512_add_ps(sm, U[i]);
+                                s2 = _mm512_fmadd_ps(U[i], U[i], s2);
+                                U[i] = _mm512_mul_ps(U[i], P[i]);
+                            }
+                            mx = _mm512_mul_ps(_mm512_add_ps(g, mx), mx);
+                            sm = _mm512_fmadd_ps(g, sm, s2);
                         } else {
                             const __m512 g = _mm512_set1_ps(cf[ch - D] * ct[ch]);
                             if (head_full) {
