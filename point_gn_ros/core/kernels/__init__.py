@@ -55,7 +55,8 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_avx512_lanes.c': ['-ffast-math', '-ffp-contract=off'],
             'pgn_avx2.c': ['-ffast-math'],  # AVX2 + FMA stage loops (CPUs without AVX-512)
             'pgn_avx2_d18.c': ['-ffast-math'],  # AVX2 stage 1 with derived Gaussians
-            'pgn_avx2_lanes.c': ['-ffast-math'],  # AVX2 stage 1, neighbours in the lanes
+            # AVX2 stage 1, neighbours in the lanes (no contraction: as pgn_avx512_lanes.c)
+            'pgn_avx2_lanes.c': ['-ffast-math', '-ffp-contract=off'],
             'pgn_encode.c': ['-ffast-math'],
             'pgn_phases.c': ['-ffast-math'],  # the steps over a range of centres
             # a lone cloud's helper thread (no arithmetic: the chunks run in pgn_encode.c)

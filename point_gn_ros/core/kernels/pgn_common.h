@@ -175,19 +175,21 @@ typedef struct {
 int pgn_lanes_plan(int64_t nc, float q, lanes_t *lp, float *b, float *T);
 int64_t pgn_lanes_scratch(int64_t K);
 void pgn_lanes_scales(const lanes_t *lp, int64_t D2, float r, float *rs, float *ct, float *t2);
-#if defined(PGN_AVX2)
-void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
-                              const int32_t *nb, int64_t S, int64_t K, const float *vx,
-                              float r, const lanes_t *lp, float *out, float *scr);
-#endif
-#if defined(__AVX512F__)
-/* Stage 1 on the initial embedding (AVX-512): the neighbours' rows from their points, not
- * read and transposed. vx then holds the neighbours' points, not their offsets. */
+/* Stage 1 on the initial embedding (the SIMD lanes kernels): the neighbours' rows from
+ * their points, not read and transposed. vx then holds the neighbours' points, not their
+ * offsets. */
 typedef struct {
     const lanes_t *lp;  /* the initial Gaussians' blocks (D / 3 per axis) */
     const float *pts;   /* the stage's points (n, 3): the centres' coordinates */
     float rx;           /* 1 / std of the coordinate offsets */
 } lanes_init_t;
+#if defined(PGN_AVX2)
+void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
+                              const int32_t *nb, int64_t S, int64_t K, const float *vx,
+                              float r, const lanes_t *lp, const lanes_init_t *ini,
+                              float *out, float *scr);
+#endif
+#if defined(__AVX512F__)
 void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                 float r, const lanes_t *lp, const lanes_init_t *ini,

@@ -241,8 +241,6 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         float lanes_b[PGN_LANES_MAXC], lanes_T[PGN_LANES_MAXC];
         const int use_lanes = !B && D > 16 && D <= 32
                               && pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T);
-#endif
-#if defined(__AVX512F__) && !defined(PGN_NO_LANES)
         /* on the initial embedding, its rows from the points (lanes_init_t) */
         lanes_t ilanes;
         float ilanes_b[PGN_LANES_MAXC], ilanes_T[PGN_LANES_MAXC];
@@ -269,7 +267,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         oj.keys[0] = keys; oj.keys[1] = keys2;
         oj.tail[0] = tails; oj.tail[1] = par ? tails + K1 + 16 : NULL;
         oj.offs = 1;
-#if defined(__AVX512F__) && !defined(PGN_NO_LANES)
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
         oj.pts = use_ini;
 #endif
         oj.xyz = xyz; oj.qx = cx; oj.qy = cy; oj.qz = cz; oj.nb = nb; oj.S = S; oj.K = K;
@@ -380,8 +378,6 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             job.lscr[0] = lscr;
             job.lscr[1] = par ? lscr + LS : NULL;
         }
-#endif
-#if defined(__AVX512F__) && !defined(PGN_NO_LANES)
         if (use_ini) {  /* vx holds the points: not scaled */
             ini.rx = rx;
             job.ini = &ini;

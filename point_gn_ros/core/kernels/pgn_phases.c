@@ -65,7 +65,7 @@ static void knn_chunk(agg_job *j, int tid, int64_t c0, int64_t c1) {
 
 /* Offsets of centres [c0, c1): v = xyz[nb] - centre (K, 3) per centre, and each centre's
  * float sums of v and v^2 into part[2 c], part[2 c + 1] (the caller adds them in double:
- * whichever thread ran a centre, the sums are the same bits). pts (AVX-512 builds, for
+ * whichever thread ran a centre, the sums are the same bits). pts (SIMD builds, for
  * lanes_init_t): the neighbours' points go to vx instead, and the sums come from
  * registers. */
 static void offsets_centres(const float *xyz, const float *cx, const float *cy,
@@ -76,7 +76,7 @@ static void offsets_centres(const float *xyz, const float *cx, const float *cy,
         const int32_t *nr = nb + c * K;
         float *v = vx + c * K * 3;
         int64_t t = 0;
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) || defined(PGN_AVX2)
         if (pts) {
             /* 4 floats a neighbour, the 4th (the next point's x) overwritten by the next
              * store and kept out of the sums; the last neighbour by scalars, as below */
@@ -161,7 +161,7 @@ static void aggregate_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
                                    j->ini, out, j->lscr[tid]);
 #else
         pgn_aggregate_lanes_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes,
-                                 out, j->lscr[tid]);
+                                 j->ini, out, j->lscr[tid]);
 #endif
         return;
     }

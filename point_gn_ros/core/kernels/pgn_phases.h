@@ -75,8 +75,8 @@ typedef struct agg_job {
     float *pe[2], *mx[2], *sm[2];
     const lanes_t *lanes;  /* stage 1 with neighbours in the lanes (SIMD builds), else NULL */
     float *lscr[2];        /* its scratch, per thread */
+    const lanes_init_t *ini;  /* stage 1's rows from the points (SIMD builds), or NULL */
 #if defined(__AVX512F__)
-    const lanes_init_t *ini;  /* stage 1's rows from the points, or NULL */
     const float *ccs;
     const __mmask16 *m1, *m2;
     float sc;
