@@ -16,26 +16,6 @@ static inline __m256 exp2_neg0(__m256 t) {
                          _mm256_cmp_ps(t, _mm256_set1_ps(125.0f), _CMP_LT_OQ));
 }
 
-/* 8 channels' lane partials V (8, 8) reduced over the lanes: lane c is channel c's max
- * (MAX) or sum. Rounds: 128-bit halves, pairs, neighbours; the last leaves channel 2 j + h
- * in lane 4 h + j, then one permute. */
-#define PGN_RED8(NAME, OP)                                                               \
-    static inline __m256 NAME(const float *V) {                                         \
-        __m256 s[4];                                                                     \
-        for (int i = 0; i < 4; ++i) {                                                    \
-            const __m256 a = _mm256_load_ps(V + 16 * i), b = _mm256_load_ps(V + 16 * i + 8); \
-            s[i] = OP(_mm256_permute2f128_ps(a, b, 0x20), _mm256_permute2f128_ps(a, b, 0x31)); \
-        }                                                                                \
-        for (int i = 0; i < 2; ++i)                                                      \
-            s[i] = OP(_mm256_shuffle_ps(s[2 * i], s[2 * i + 1], 0x44),                   \
-                      _mm256_shuffle_ps(s[2 * i], s[2 * i + 1], 0xEE));                  \
-        const __m256 t = OP(_mm256_shuffle_ps(s[0], s[1], 0x88),                         \
-                            _mm256_shuffle_ps(s[0], s[1], 0xDD));                        \
-        return _mm256_permutevar8x32_ps(t, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));  \
-    }
-PGN_RED8(red8_max, _mm256_max_ps)
-PGN_RED8(red8_add, _mm256_add_ps)
-#undef PGN_RED8
 
 /* The initial Gaussians of the three axes of ng (1 or 2) groups at coordinates w[3 i + a]
  * (8 lanes each, clamped to +-W): pgn_avx512_lanes.c's init_rows with 8 lanes (vm[i]: group
@@ -260,7 +240,7 @@ void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
         const __m256 ik = _mm256_set1_ps(invk);
         for (int64_t h = 0; h < D2; h += 8)
             _mm256_store_ps(acc + h, _mm256_mul_ps(_mm256_load_ps(t2 + h), _mm256_fmadd_ps(
-                red8_add(SM + h * 8), ik, red8_max(MX + h * 8))));
+                pgn_red8_add(SM + h * 8), ik, pgn_red8_max(MX + h * 8))));
         for (int64_t ch = 0; ch < D2; ++ch) o[ch] = acc[ch];
         for (int64_t d = D2; d < D2p; ++d) o[d] = 0.0f;
     }

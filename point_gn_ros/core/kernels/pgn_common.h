@@ -163,6 +163,30 @@ static inline __m256 exp2_neg_avx2(__m256 t) {
 }
 #endif
 
+#if defined(__AVX2__)
+/* The lanes kernels' reductions (pgn_avx2_lanes.c; pgn_avx512_lanes.c per 8 channels). */
+/* 8 channels' lane partials V (8, 8) reduced over the lanes: lane c is channel c's max
+ * (MAX) or sum. Rounds: 128-bit halves, pairs, neighbours; the last leaves channel 2 j + h
+ * in lane 4 h + j, then one permute. */
+#define PGN_RED8(NAME, OP)                                                               \
+    static inline __m256 NAME(const float *V) {                                         \
+        __m256 s[4];                                                                     \
+        for (int i = 0; i < 4; ++i) {                                                    \
+            const __m256 a = _mm256_load_ps(V + 16 * i), b = _mm256_load_ps(V + 16 * i + 8); \
+            s[i] = OP(_mm256_permute2f128_ps(a, b, 0x20), _mm256_permute2f128_ps(a, b, 0x31)); \
+        }                                                                                \
+        for (int i = 0; i < 2; ++i)                                                      \
+            s[i] = OP(_mm256_shuffle_ps(s[2 * i], s[2 * i + 1], 0x44),                   \
+                      _mm256_shuffle_ps(s[2 * i], s[2 * i + 1], 0xEE));                  \
+        const __m256 t = OP(_mm256_shuffle_ps(s[0], s[1], 0x88),                         \
+                            _mm256_shuffle_ps(s[0], s[1], 0xDD));                        \
+        return _mm256_permutevar8x32_ps(t, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));  \
+    }
+PGN_RED8(pgn_red8_max, _mm256_max_ps)
+PGN_RED8(pgn_red8_add, _mm256_add_ps)
+#undef PGN_RED8
+#endif
+
 /* Separable Gaussians with neighbours in the lanes (pgn_avx512_lanes.c, pgn_avx2_lanes.c;
  * the plan and the scratch size in pgn_stage.c): nc Gaussians per axis in nblk blocks of B
  * (the last may be shorter) starting at b[m]; T: (nc,), the T_l of Gaussian j = m B + l. */
