@@ -66,8 +66,7 @@ static void knn_chunk(agg_job *j, int tid, int64_t c0, int64_t c1) {
 /* Offsets of centres [c0, c1): v = xyz[nb] - centre (K, 3) per centre, and each centre's
  * float sums of v and v^2 into part[2 c], part[2 c + 1] (the caller adds them in double:
  * whichever thread ran a centre, the sums are the same bits). pts (SIMD builds, for
- * lanes_init_t): the neighbours' points go to vx instead, and the sums come from
- * registers. */
+ * lanes_init_t): the neighbours' points go to vx instead. */
 static void offsets_centres(const float *xyz, const float *cx, const float *cy,
                             const float *cz, const int32_t *nb, int64_t K, int64_t c0,
                             int64_t c1, float *vx, float *part, int pts) {
@@ -77,19 +76,21 @@ static void offsets_centres(const float *xyz, const float *cx, const float *cy,
         float *v = vx + c * K * 3;
         int64_t t = 0;
 #if defined(__AVX512F__) || defined(PGN_AVX2)
-        if (pts) {
-            /* 4 floats a neighbour, the 4th (the next point's x) overwritten by the next
-             * store and kept out of the sums; the last neighbour by scalars, as below */
+        {
+            /* 4 floats a neighbour in and out, the 4th (the next point's x; xyz has 4
+             * floats of slack) overwritten by the next store and kept out of the sums; the
+             * last neighbour by scalars: its 4th float would land in the next centre's
+             * row, which the other thread of a lone cloud may have written already */
             const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
             const __m128 m3 = _mm_castsi128_ps(_mm_setr_epi32(-1, -1, -1, 0));
             __m128 s1a = _mm_setzero_ps(), s1b = s1a, s2a = s1a, s2b = s1a;
             for (; t + 2 < K; t += 2) {
                 const __m128 p4 = _mm_loadu_ps(xyz + (int64_t)nr[t] * 3);
                 const __m128 p5 = _mm_loadu_ps(xyz + (int64_t)nr[t + 1] * 3);
-                _mm_storeu_ps(v + t * 3, p4);
-                _mm_storeu_ps(v + t * 3 + 3, p5);
-                const __m128 d = _mm_and_ps(_mm_sub_ps(p4, q4), m3);
-                const __m128 e = _mm_and_ps(_mm_sub_ps(p5, q4), m3);
+                const __m128 d4 = _mm_sub_ps(p4, q4), d5 = _mm_sub_ps(p5, q4);
+                _mm_storeu_ps(v + t * 3, pts ? p4 : d4);
+                _mm_storeu_ps(v + t * 3 + 3, pts ? p5 : d5);
+                const __m128 d = _mm_and_ps(d4, m3), e = _mm_and_ps(d5, m3);
                 s1a = _mm_add_ps(s1a, d);
                 s1b = _mm_add_ps(s1b, e);
                 s2a = _mm_fmadd_ps(d, d, s2a);
@@ -97,9 +98,11 @@ static void offsets_centres(const float *xyz, const float *cx, const float *cy,
             }
             for (; t < K; ++t) {
                 const float *pj = xyz + (int64_t)nr[t] * 3;
-                v[t * 3] = pj[0]; v[t * 3 + 1] = pj[1]; v[t * 3 + 2] = pj[2];
                 const __m128 d = _mm_and_ps(
                     _mm_sub_ps(_mm_setr_ps(pj[0], pj[1], pj[2], 0.0f), q4), m3);
+                float dv[4];
+                _mm_storeu_ps(dv, d);
+                for (int a = 0; a < 3; ++a) v[t * 3 + a] = pts ? pj[a] : dv[a];
                 s1a = _mm_add_ps(s1a, d);
                 s2a = _mm_fmadd_ps(d, d, s2a);
             }
@@ -112,15 +115,6 @@ static void offsets_centres(const float *xyz, const float *cx, const float *cy,
         }
 #else
         (void)pts;
-#endif
-#if defined(PGN_AVX2) || defined(__AVX512F__)
-        /* 4 floats in, 4 out per neighbour: the 4th is the next point's x (xyz has 4
-         * floats of slack), overwritten by the next store; not for the last neighbour,
-         * whose 4th float would land in the next centre's row, which the other thread
-         * of a lone cloud may have written already */
-        const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
-        for (; t + 1 < K; ++t)
-            _mm_storeu_ps(v + t * 3, _mm_sub_ps(_mm_loadu_ps(xyz + (int64_t)nr[t] * 3), q4));
 #endif
         for (; t < K; ++t) {
             const float *pj = xyz + (int64_t)nr[t] * 3;
