@@ -400,13 +400,22 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         TOC(4, 3 + st);
         TIC(9);
         cents += nc;
-        /* global max and mean over centres */
-        for (int64_t d = 0; d < D2; ++d) { o[d] = -INFINITY; o[D2 + d] = 0.0f; }
-        for (int64_t c = 0; c < S; ++c) {
-            const float *rr = nfeat + c * D2p;
-            for (int64_t d = 0; d < D2; ++d) { o[d] = rr[d] > o[d] ? rr[d] : o[d]; o[D2 + d] += rr[d]; }
+        /* global max and mean over centres, 64 channels at a time in registers (each
+         * channel's sum still in centre order) */
+        for (int64_t d0 = 0; d0 < D2; d0 += 64) {
+            float mxb[64], smb[64];
+            const int64_t nd = D2 - d0 < 64 ? D2 - d0 : 64;
+            for (int64_t d = 0; d < 64; ++d) { mxb[d] = -INFINITY; smb[d] = 0.0f; }
+            for (int64_t c = 0; c < S; ++c) {
+                const float *restrict rr = nfeat + c * D2p + d0;
+#pragma omp simd
+                for (int64_t d = 0; d < nd; ++d) {
+                    mxb[d] = rr[d] > mxb[d] ? rr[d] : mxb[d];
+                    smb[d] += rr[d];
+                }
+            }
+            for (int64_t d = 0; d < nd; ++d) { o[d0 + d] = mxb[d]; o[D2 + d0 + d] = smb[d] / (float)S; }
         }
-        for (int64_t d = 0; d < D2; ++d) o[D2 + d] /= (float)S;
         o += 2 * D2;
         TOC(9, 9);
         float *tmp = feat; feat = nfeat; nfeat = tmp;
