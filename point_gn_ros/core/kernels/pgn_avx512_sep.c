@@ -250,9 +250,8 @@ void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
          * Gs = G / T and rT = r / T, one multiply a neighbour and block less, and T^2 scales
          * the results (T > 0). T of channel a n + 16 m + l is T[m][l]; lanes past an
          * axis's n centres are masked off, so their T is 1. */
-        for (int64_t d = 0; d < D2 + 32; ++d) {
-            const int64_t j = d % fx->n;
-            const float T = d < D2 ? fx->T[j / 16 * 16 + j % 16] : 1.0f;
+        for (int64_t d = 0, j = 0; d < D2 + 32; ++d, j = j + 1 == fx->n ? 0 : j + 1) {
+            const float T = d < D2 ? fx->T[j] : 1.0f;
             rT[d] = r / T;
             T2[d] = T * T;
         }

@@ -280,9 +280,6 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         const float rf = inv_std(parts, S, (double)(S * K * D));
         TOC(3, 10);
         TIC(4);
-        /* per-channel centre and axis of the pe channels (padding lanes: ignored) */
-        for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
-        for (int64_t d = 0; d < D2; ++d) { cc[d] = cents[d % nc]; ax[d] = (int32_t)(d / nc); }
         sep_t fxs, *fx = NULL;
         if (B) {
             /* grid from the exact linspace formula, in double, rounded once */
@@ -396,6 +393,12 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             job.vx_scale = NULL;
         }
 #endif
+        if (!job.use_fx && !job.lanes && !job.d32) {
+            /* the generic kernel's per-channel centre and axis (padding lanes: ignored) */
+            for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
+            for (int64_t a = 0, d = 0; a < 3; ++a)
+                for (int64_t j = 0; j < nc; ++j, ++d) { cc[d] = cents[j]; ax[d] = (int32_t)a; }
+        }
         pgn_par_run(par, pgn_phase_chunk, &job, job.nchunks);
         TOC(4, 3 + st);
         TIC(9);
