@@ -14,9 +14,11 @@ which one runs.
 pgn_geom.c, pgn_slab.c, pgn_knn.c, pgn_knn16.c, pgn_project.c and pgn_prepare.c are compiled
 without fast-math and with -ffp-contract=off (distances must round exactly like the oracle's;
 an index row's projection must not depend on the rows beside it; prepare()'s normalisation
-rounds like numpy's). The stage files (pgn_stage.c, pgn_avx512.c, pgn_avx512_sep.c,
-pgn_avx512_lanes.c, pgn_avx2.c, pgn_avx2_d18.c, pgn_avx2_lanes.c, pgn_encode.c, pgn_phases.c)
-and pgn_search.c use -ffast-math (vectorised code, glibc's libmvec). pgn_dots.c (the exact
+rounds like numpy's). The stage files (pgn_stage.c, pgn_plan.c, pgn_avx512.c,
+pgn_avx512_sep.c, pgn_avx512_lanes.c, pgn_avx2.c, pgn_avx2_d18.c, pgn_avx2_lanes.c,
+pgn_encode.c, pgn_phases.c) and pgn_search.c use -ffast-math (vectorised code, glibc's
+libmvec); the two lanes files add -ffp-contract=off (their init rows must round a centre and
+its neighbours alike). pgn_dots.c (the exact
 vote's cosines) is built without fast-math and with -ffp-contract=off, so that a dot's
 summation order is its source's in any batch.
 pgn_head.c (a lone query's head, bank/lone.py: -inf marks absent classes), pgn_lone.c (a
@@ -48,6 +50,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
             # slabs: a stage's points in buckets, for FPS and the kNN
             'pgn_slab.c': ['-ffp-contract=off', '-fno-fast-math'],
             'pgn_stage.c': ['-ffast-math'],
+            'pgn_plan.c': ['-ffast-math'],  # a stage's kernel plan (separable, lanes)
             'pgn_avx512.c': ['-ffast-math'],
             'pgn_avx512_sep.c': ['-ffast-math'],  # the separable stages 2-4 on AVX-512
             # stage 1 with neighbours in the lanes; no contraction: its init_rows must

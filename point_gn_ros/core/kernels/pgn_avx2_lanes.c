@@ -2,7 +2,8 @@
  * 8-float lanes, for CPUs without AVX-512 (PGN_AVX2). An axis's Gaussians are running
  * products U_{l+1} = U_l P from U_0 = A (2 exponentials per axis and 8 neighbours, one
  * block at the default sigma), T folded out of the products and back in on the results;
- * the offset half's rows transposed per centre, 4 channels at a time. Sixteen ymm registers
+ * the offset half's rows computed from the points on the initial embedding (init_rows8),
+ * else transposed per centre, 4 channels at a time. Sixteen ymm registers
  * hold 8 groups' running products; their P are read from memory. */
 #include "pgn_common.h"
 

@@ -8,10 +8,13 @@
  * P = exp(-2 q h w) (w: the neighbour's offset on that axis) and T_l = exp(2 q l h b_m +
  * q l^2 h^2): the separable form of sep_t, the powers taken one step at a time. An axis
  * then costs 2 exponentials per 16 neighbours (one block) instead of one per channel.
- * pgn_lanes_plan (pgn_stage.c) picks the blocks (lanes_range_ok).
+ * pgn_lanes_plan (pgn_plan.c) picks the blocks (lanes_range_ok).
  *
- * The offset half needs the neighbours' feature rows by channel: transposed once per
- * centre into a channel-major table. Each channel's max and sum are kept per lane and
+ * The offset half needs the neighbours' feature rows by channel, in a channel-major table
+ * per centre. On the initial embedding (lanes_init_t: stage 1 of the encoder) a row is the
+ * Gaussians of the neighbour's own coordinates, so its offsets are computed in the lanes
+ * by the same chain (init_rows); elsewhere the rows are read and transposed. Each
+ * channel's max and sum are kept per lane and
  * reduced over the lanes at the end of the centre. Features stay within a few 1e-6 of the
  * oracle (BENCHMARKS.md); a result depends on its centre only, so batches, threads and a
  * lone cloud's chunks stay bit-identical.

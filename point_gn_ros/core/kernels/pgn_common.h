@@ -1,6 +1,7 @@
 /* Shared by the encoder's C files: pgn_stage.c (portable stage kernels), the ISA kernels
  * (pgn_avx512*.c, pgn_avx2*.c: compiled only where -march=native enables them),
- * pgn_phases.c (the steps over a range of centres) and pgn_encode.c (one cloud end to end).
+ * pgn_plan.c (a stage's kernel plan), pgn_phases.c (the steps over a range of centres) and
+ * pgn_encode.c (one cloud end to end).
  * Hashed with the sources for the kernel cache key (kernels/__init__.py).
  */
 #ifndef PGN_COMMON_H
@@ -188,7 +189,7 @@ PGN_RED8(pgn_red8_add, _mm256_add_ps)
 #endif
 
 /* Separable Gaussians with neighbours in the lanes (pgn_avx512_lanes.c, pgn_avx2_lanes.c;
- * the plan and the scratch size in pgn_stage.c): nc Gaussians per axis in nblk blocks of B
+ * the plan and the scratch size in pgn_plan.c): nc Gaussians per axis in nblk blocks of B
  * (the last may be shorter) starting at b[m]; T: (nc,), the T_l of Gaussian j = m B + l. */
 #define PGN_LANES_MAXC 32
 typedef struct {
@@ -226,7 +227,9 @@ void pgn_stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, cons
                          int64_t S, int64_t K, const float *vx, float r, const float *cc,
                          const int32_t *ax, float q, float *out, float *pe, int64_t PS,
                          float *mx, float *sm, sep_t *fx);
+/* pgn_plan.c */
 int pgn_sep_ok(int64_t n, double q, int B);
+int pgn_sep_plan(int64_t nc, float q, sep_t *fx, float *b, float *C, float *T);
 
 /* pgn_avx512.c */
 #if defined(__AVX512F__)

@@ -80,25 +80,6 @@ static void *xalloc(size_t bytes) {
     return p;
 }
 
-/* Whether a separable kernel that folds T out of its products (w = T^2 (f / T + A e) A e)
- * keeps T^2 in float range for blocks of L + 1: |log T_l| <= 2 |q| L h + |q| L^2 h^2 < 40. */
-#if defined(__AVX512F__) || defined(PGN_AVX2)
-static int tfold_ok(int64_t nc, double q, int L) {
-    const double h = 2.0 / (double)(nc + 1), aq = fabs(q);
-    return 2.0 * aq * L * h + aq * L * L * h * h < 40.0;
-}
-
-/* Whether sep_t's chained A (blocks of B) stays in float range and loses nothing that
- * matters: the factors P^B and C_m within e^+-80, and where some A_m underflows (|b_m - w|
- * > sqrt(87 / |q|), so |w| > sqrt(87 / |q|) - 1) every Gaussian of centres in (-1, 1) is
- * below e^-30, so the zeros the chain carries on lose only such values. */
-static int chain_ok(int64_t nc, double q, int B) {
-    const double h = 2.0 / (double)(nc + 1), aq = fabs(q), W = 1.0 + sqrt(87.0 / aq);
-    const double r = sqrt(87.0 / aq) - 2.0, b = (double)B;
-    return 2.0 * b * aq * h * W < 80.0 && 2.0 * b * aq * h + b * b * aq * h * h < 80.0
-           && r > 0.0 && aq * r * r > 30.0;
-}
-#endif
 
 
 /* Encode one cloud. xyz: (num_points, 3); cents: concatenated Gaussian centre
@@ -224,17 +205,9 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             cx[c] = x[cidx[c]]; cy[c] = y[cidx[c]]; cz[c] = z[cidx[c]];
             cxyz[c * 3] = cx[c]; cxyz[c * 3 + 1] = cy[c]; cxyz[c * 3 + 2] = cz[c];
         }
-        /* blocks of 16 where the AVX-512 path runs and float range allows, else of 8; the
-         * kernels that fold T out (sep_centre16, AVX2's sep_pass8) also need tfold_ok */
-        int B = 0;
-#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
-        if (pgn_sep_ok(nc, (double)q, 16) && tfold_ok(nc, (double)q, 15)) B = 16;
-#endif
-#if defined(PGN_AVX2)
-        if (!B && pgn_sep_ok(nc, (double)q, 8) && tfold_ok(nc, (double)q, 7)) B = 8;
-#else
-        if (!B && pgn_sep_ok(nc, (double)q, 8)) B = 8;
-#endif
+        /* the separable form's blocks (pgn_plan.c), 0 where it is not used */
+        sep_t fxs;
+        const int B = pgn_sep_plan(nc, q, &fxs, sepb, sepC, sepT);
 #if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
         /* stage 1 (16 < D <= 32) with neighbours in the lanes where a block plan is safe */
         lanes_t lanes;
@@ -280,39 +253,8 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         const float rf = inv_std(parts, S, (double)(S * K * D));
         TOC(3, 10);
         TIC(4);
-        sep_t fxs, *fx = NULL;
+        sep_t *fx = NULL;
         if (B) {
-            /* grid from the exact linspace formula, in double, rounded once */
-            const double h = 2.0 / (double)(nc + 1), b0 = -1.0 + h, qd = (double)q;
-            fxs.n = nc;
-            fxs.B = B;
-            fxs.M = (nc + B - 1) / B;
-            fxs.q = q;
-            fxs.h2q = (float)(-2.0 * qd * h);
-            fxs.W = (float)(1.0 + sqrt(87.0 / fabs(qd)));
-            for (int64_t m = 0; m < fxs.M; ++m) {
-                const double bm = b0 + (double)B * (double)m * h;
-                sepb[m] = (float)bm;
-                for (int l = 0; l < B; ++l)
-                    sepT[m * B + l] = (float)exp(2.0 * qd * l * h * bm + qd * l * l * h * h);
-            }
-            fxs.b = sepb;
-            fxs.C = NULL;
-#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_CHAIN)
-            /* the ISA paths that chain: AVX-512 with blocks of 16, AVX2 with blocks of 8 */
-#if defined(__AVX512F__)
-            const int chain_b = 16;
-#else
-            const int chain_b = 8;
-#endif
-            if (B == chain_b && chain_ok(nc, qd, B)) {
-                for (int64_t m = 0; m < fxs.M; ++m)
-                    sepC[m] = (float)exp(2.0 * B * qd * h * (b0 + (double)B * (double)m * h)
-                                         + (double)(B * B) * qd * h * h);
-                fxs.C = sepC;
-            }
-#endif
-            fxs.T = sepT;
             fxs.A = sepA;
             fxs.E = sepE;
             fx = &fxs;
