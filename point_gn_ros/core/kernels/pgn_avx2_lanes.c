@@ -18,36 +18,17 @@ static inline __m256 exp2_neg0(__m256 t) {
 }
 
 
-/* The initial Gaussians of the three axes of ng (1 or 2) groups at coordinates w[3 i + a]
- * (8 lanes each, clamped to +-W): pgn_avx512_lanes.c's init_rows with 8 lanes (vm[i]: group
- * i's valid-lane mask), and its reasons: not inlined, its file built with
+/* The initial Gaussians of ng (1 or 2) groups of 8 neighbours (PGN_INIT_ROWS_BODY,
+ * pgn_common.h; vm[i]: group i's valid-lane mask): not inlined, its file built with
  * -ffp-contract=off, so a neighbour on its centre's point gives an offset of exactly 0. */
 __attribute__((noinline)) static void init_rows8(const __m256 *w, int ng, const lanes_t *lp,
                                                  const float *csub, const __m256 *vm,
                                                  float *out, int64_t stride) {
-    const __m256 ql = _mm256_set1_ps(lp->ql), nh2ql = _mm256_set1_ps(-lp->h2ql);
-    const int64_t n = lp->nc, B = lp->B, nblk = lp->nblk;
-    const int nv = 3 * ng;
-    const float *bb = lp->b;
-    __m256 P[6], U[6];
-    for (int v = 0; v < nv; ++v) P[v] = exp2_neg0(_mm256_mul_ps(nh2ql, w[v]));
-    for (int64_t m = 0; m < nblk; ++m) {
-        const __m256 bm = _mm256_set1_ps(bb[m]);
-        for (int v = 0; v < nv; ++v) {
-            const __m256 u = _mm256_sub_ps(bm, w[v]);
-            U[v] = exp2_neg0(_mm256_mul_ps(_mm256_mul_ps(u, u), ql));
-        }
-        const int64_t j0 = m * B, L = n - j0 < B ? n - j0 : B;
-        for (int64_t l = 0; l < L; ++l) {
-            for (int v = 0; v < nv; ++v) {
-                const int i = v / 3;
-                const int64_t j = (v - 3 * i) * n + j0 + l;
-                _mm256_store_ps(out + 8 * i + j * stride,
-                                _mm256_and_ps(vm[i], _mm256_sub_ps(U[v], _mm256_set1_ps(csub[j]))));
-                U[v] = _mm256_mul_ps(U[v], P[v]);
-            }
-        }
-    }
+#define PGN_ROW_STORE(p, m, U, c) \
+    _mm256_store_ps((p), _mm256_and_ps((m), _mm256_sub_ps((U), _mm256_set1_ps(c))))
+    PGN_INIT_ROWS_BODY(__m256, 8, 6, exp2_neg0, _mm256_set1_ps, _mm256_sub_ps, _mm256_mul_ps,
+                       PGN_ROW_STORE);
+#undef PGN_ROW_STORE
 }
 
 /* One channel over a chunk's NG groups: w = (f + U) U into mx (valid lanes only unless

@@ -52,39 +52,18 @@ PGN_RED16(red16_add, _mm256_add_ps, pgn_red8_add)
 #ifndef IRG
 #define IRG 4  /* groups of neighbours per init_rows call (8 spills) */
 #endif
-/* The initial Gaussians of the three axes of ng (1 to IRG) groups at coordinates w[3 i + a]
- * (16 lanes each, clamped to +-W), blockwise U_j = A_m P^l as in the pe chain (the 3 ng
- * chains interleaved): group i's row a n + j (n = lp->nc) at out + i 16 + (a n + j) stride
- * = U_j - csub[a n + j] in the lanes of vm[i], else 0. Not inlined, and its file built
- * with -ffp-contract=off: a centre (csub 0) and its neighbours then take the same
- * operations, so a neighbour on the centre's point gives the centre's U bit for bit and an
- * offset of exactly 0, as the rows' table does. */
+/* The initial Gaussians of ng (1 to IRG) groups of 16 neighbours (PGN_INIT_ROWS_BODY,
+ * pgn_common.h). Not inlined, and its file built with -ffp-contract=off: a centre (csub 0)
+ * and its neighbours then take the same operations, so a neighbour on the centre's point
+ * gives the centre's U bit for bit and an offset of exactly 0, as the rows' table does. */
 __attribute__((noinline)) static void init_rows(const __m512 *w, int ng, const lanes_t *lp,
                                                 const float *csub, const __mmask16 *vm,
                                                 float *out, int64_t stride) {
-    const __m512 ql = _mm512_set1_ps(lp->ql), nh2ql = _mm512_set1_ps(-lp->h2ql);
-    const int64_t n = lp->nc, B = lp->B, nblk = lp->nblk;
-    const int nv = 3 * ng;
-    const float *bb = lp->b;
-    __m512 P[3 * IRG], U[3 * IRG];
-    for (int v = 0; v < nv; ++v) P[v] = exp2_neg_avx512(_mm512_mul_ps(nh2ql, w[v]));
-    for (int64_t m = 0; m < nblk; ++m) {
-        const __m512 bm = _mm512_set1_ps(bb[m]);
-        for (int v = 0; v < nv; ++v) {
-            const __m512 u = _mm512_sub_ps(bm, w[v]);
-            U[v] = exp2_neg_avx512(_mm512_mul_ps(_mm512_mul_ps(u, u), ql));
-        }
-        const int64_t j0 = m * B, L = n - j0 < B ? n - j0 : B;
-        for (int64_t l = 0; l < L; ++l) {
-            for (int v = 0; v < nv; ++v) {
-                const int i = v / 3;
-                const int64_t j = (v - 3 * i) * n + j0 + l;
-                _mm512_store_ps(out + 16 * i + j * stride,
-                                _mm512_maskz_sub_ps(vm[i], U[v], _mm512_set1_ps(csub[j])));
-                U[v] = _mm512_mul_ps(U[v], P[v]);
-            }
-        }
-    }
+#define PGN_ROW_STORE(p, m, U, c) \
+    _mm512_store_ps((p), _mm512_maskz_sub_ps((m), (U), _mm512_set1_ps(c)))
+    PGN_INIT_ROWS_BODY(__m512, 16, 3 * IRG, exp2_neg_avx512, _mm512_set1_ps, _mm512_sub_ps,
+                       _mm512_mul_ps, PGN_ROW_STORE);
+#undef PGN_ROW_STORE
 }
 
 void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,

@@ -208,6 +208,35 @@ typedef struct {
     const float *pts;   /* the stage's points (n, 3): the centres' coordinates */
     float rx;           /* 1 / std of the coordinate offsets */
 } lanes_init_t;
+/* The body of the lanes kernels' init_rows (pgn_avx512_lanes.c, pgn_avx2_lanes.c): the
+ * initial Gaussians of the three axes of ng groups of L lanes at coordinates w[3 i + a]
+ * (clamped to +-W), blockwise U_j = A_m P^l as in the pe chain, the 3 ng chains (at most
+ * NVMAX) interleaved; group i's row a n + j (n = lp->nc) at out + L i + (a n + j) stride
+ * gets U_j - csub[a n + j] in the lanes of vm[i], else 0, by STORE(p, vm, U, c). V, EXP2,
+ * SET1, SUB and MUL: the ISA's vector type, 2^-t and operations. */
+#define PGN_INIT_ROWS_BODY(V, L, NVMAX, EXP2, SET1, SUB, MUL, STORE)                    \
+    do {                                                                                 \
+        const V ql_ = SET1(lp->ql), nh2ql_ = SET1(-lp->h2ql);                            \
+        const int64_t n_ = lp->nc, B_ = lp->B, nblk_ = lp->nblk;                         \
+        const int nv_ = 3 * ng;                                                          \
+        V P_[NVMAX], U_[NVMAX];                                                          \
+        for (int v = 0; v < nv_; ++v) P_[v] = EXP2(MUL(nh2ql_, w[v]));                   \
+        for (int64_t m = 0; m < nblk_; ++m) {                                            \
+            const V bm = SET1(lp->b[m]);                                                 \
+            for (int v = 0; v < nv_; ++v) {                                              \
+                const V u = SUB(bm, w[v]);                                               \
+                U_[v] = EXP2(MUL(MUL(u, u), ql_));                                       \
+            }                                                                            \
+            const int64_t j0 = m * B_, Lm = n_ - j0 < B_ ? n_ - j0 : B_;                 \
+            for (int64_t l = 0; l < Lm; ++l)                                             \
+                for (int v = 0; v < nv_; ++v) {                                          \
+                    const int i = v / 3;                                                 \
+                    const int64_t j = (v - 3 * i) * n_ + j0 + l;                         \
+                    STORE(out + (L) * i + j * stride, vm[i], U_[v], csub[j]);            \
+                    U_[v] = MUL(U_[v], P_[v]);                                           \
+                }                                                                        \
+        }                                                                                \
+    } while (0)
 #if defined(PGN_AVX2)
 void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
