@@ -20,9 +20,15 @@
 #endif
 
 #define PAD 16
-/* Separable Gaussians pay off from this many centres per axis (stage 2 on). */
+/* Separable Gaussians pay off from this many centres per axis: stage 2 on where the SIMD
+ * builds' stage 1 runs in neighbour lanes; from 4 in the portable build, whose stage 1
+ * would otherwise take an exponential a channel (14.6 -> 10.5 ms a cloud, BENCHMARKS.md). */
 #ifndef SEP_MIN_N
+#if defined(__AVX512F__) || defined(PGN_AVX2)
 #define SEP_MIN_N 36
+#else
+#define SEP_MIN_N 4
+#endif
 #endif
 static inline int64_t padded(int64_t d) { return (d + PAD - 1) / PAD * PAD; }
 
