@@ -13,7 +13,12 @@
  * degree-6 polynomial, relative error < 2e-7. Inline and branch-free, so the
  * pe loop vectorises without library calls or special-case lanes. */
 static inline float exp_fast(float x) {
-    const float kf = __builtin_roundf(x * 1.44269504088896341f);
+    /* k by a truncating conversion of t +- 1/2 (roundf's value but where t + 1/2 rounds up
+     * to the next integer, which the reduction absorbs): it vectorises on plain SSE2, where
+     * roundf has no vector instruction and kept the loops scalar (BENCHMARKS.md) */
+    const float t = x * 1.44269504088896341f;
+    const int32_t ki = (int32_t)(t + __builtin_copysignf(0.5f, t));
+    const float kf = (float)ki;
     float r = x - kf * 0.693145751953125f;
     r = r - kf * 1.428606765330187e-06f;
     float p = 1.0f / 720.0f;
@@ -23,7 +28,7 @@ static inline float exp_fast(float x) {
     p = p * r + 0.5f;
     p = p * r + 1.0f;
     p = p * r + 1.0f;
-    const int32_t bits = ((int32_t)kf + 127) << 23;
+    const int32_t bits = (ki + 127) << 23;
     float scale;
     memcpy(&scale, &bits, 4);
     return p * scale;
