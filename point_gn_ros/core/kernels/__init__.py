@@ -147,6 +147,9 @@ def _key(cc: str, sources: dict[str, bytes]) -> str | None:
     except (OSError, subprocess.CalledProcessError):
         return None
     h.update(' '.join(_flags() + _arch_flags()).encode())
+    # the compiler as named too: a wrapper (CC=...) reports its compiler's version but may
+    # build otherwise, and must not share that compiler's cached builds
+    h.update(cc.encode())
     h.update(version.encode())
     h.update(_cpu_id().encode())
     return h.hexdigest()[:20]
