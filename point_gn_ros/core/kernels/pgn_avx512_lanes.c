@@ -40,18 +40,9 @@ PGN_RED16(red16_max, _mm256_max_ps, pgn_red8_max)
 PGN_RED16(red16_add, _mm256_add_ps, pgn_red8_add)
 #undef PGN_RED16
 
-#ifdef PGN_RED512
-#define RED_ADD red16_add
-#define RED_MAX red16_max
-#else
-#define RED_ADD red16_add
-#define RED_MAX red16_max
-#endif
 #define NG 8  /* groups of 16 neighbours held in registers: 128 neighbours a chunk */
 
-#ifndef IRG
-#define IRG 4  /* groups of neighbours per init_rows call (8 spills) */
-#endif
+#define IRG 4  /* groups of neighbours an init_rows call (2: slower; 8: spills) */
 /* The initial Gaussians of ng (1 to IRG) groups of 16 neighbours (PGN_INIT_ROWS_BODY,
  * pgn_common.h). Not inlined, and its file built with -ffp-contract=off: a centre (csub 0)
  * and its neighbours then take the same operations, so a neighbour on the centre's point
@@ -148,10 +139,11 @@ void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cid
                 v = _mm512_maskz_mov_ps(vm, _mm512_min_ps(_mm512_max_ps(v, vnW), vW));
                 _mm512_store_ps(WV + a * Kc + 16 * g, v);
             }
-            if (ini) {  /* the rows by pairs of groups */
-                vmg[g % IRG] = vm;
-                if (g % IRG == IRG - 1 || g == G - 1)
-                    init_rows(wg, 1 + (int)(g % IRG), ini->lp, cuj, vmg, RT + 16 * (g - g % IRG), Kc);
+            if (ini) {  /* the rows IRG groups at a time */
+                const int64_t gi = g % IRG;
+                vmg[gi] = vm;
+                if (gi == IRG - 1 || g == G - 1)
+                    init_rows(wg, (int)gi + 1, ini->lp, cuj, vmg, RT + 16 * (g - gi), Kc);
                 continue;
             }
             /* rows by channel, 4 channels at a time: 128-bit lane j of Y[m] holds row 4 j + m

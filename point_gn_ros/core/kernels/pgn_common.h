@@ -171,8 +171,8 @@ static inline __m256 exp2_neg_avx2(__m256 t) {
 #endif
 
 #if defined(__AVX2__)
-/* The lanes kernels' reductions (pgn_avx2_lanes.c; pgn_avx512_lanes.c per 8 channels). */
-/* 8 channels' lane partials V (8, 8) reduced over the lanes: lane c is channel c's max
+/* The lanes kernels' reduction (pgn_avx2_lanes.c; pgn_avx512_lanes.c per 8 channels): 8
+ * channels' lane partials V (8, 8) reduced over the lanes: lane c is channel c's max
  * (MAX) or sum. Rounds: 128-bit halves, pairs, neighbours; the last leaves channel 2 j + h
  * in lane 4 h + j, then one permute. */
 #define PGN_RED8(NAME, OP)                                                               \

@@ -96,8 +96,8 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     const int64_t Dmax = D0 << cfg->stages;  /* widest 2D */
     /* Every stage holds S_i rows of padded(2 D_i) <= N * D0 + S_i * PAD features. */
     const int64_t fsz = N * (D0 + PAD);
-    /* + 16: kernels that read a row's last vector whole (pgn_avx512_sep.c) stay inside */
-    /* not zeroed: every row a stage reads is written first, padding lanes as 0 */
+    /* + 16: kernels that read a row's last vector whole (pgn_avx512_sep.c) stay inside;
+     * not zeroed: every row a stage reads is written first, padding lanes as 0 */
     float *featA = xalloc_raw(sizeof(float) * (size_t)(fsz + 16));
     float *featB = xalloc_raw(sizeof(float) * (size_t)(fsz + 16));
     float *xyz = xalloc(sizeof(float) * ((size_t)N * 3 + 4));  /* + 4: offsets' 4-float loads */

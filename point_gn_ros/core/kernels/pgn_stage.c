@@ -42,7 +42,7 @@ void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K) {
     float *w = fx->E;  /* row 0 of E (all ones) is filled last: use it for w meanwhile */
     const float W = fx->W;
 #if defined(__AVX512F__)
-    if (fx->C && fx->B == 16) {
+    if (fx->C) {  /* AVX-512 chains only blocks of 16 (pgn_sep_plan) */
         /* AVX-512's stages 2-4 in one pass: the clamp, A_0 and P^16 by exponentials, then
          * A_{m+1} = A_m (P^16 C_m) (sep_t: the factor off the chain, so a step waits for
          * one multiply), and P, P^2, P^4, P^8 for sep_centre16 (P by the same 2^-t) */
@@ -78,26 +78,7 @@ void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K) {
 #endif
 #pragma omp simd
     for (int64_t i = 0; i < nta; ++i) w[i] = v[i] < -W ? -W : (v[i] > W ? W : v[i]);
-#if defined(__AVX512F__)
-    if (fx->C) {  /* A_0 and P^16 by exponentials, then A_{m+1} = A_m P^16 C_m (sep_t) */
-        const __m512 vb = _mm512_set1_ps(fx->b[0]);
-        const __m512 vs = _mm512_set1_ps(-fx->q * 1.44269504088896341f);
-        const __m512 s16 = _mm512_set1_ps(-16.0f * fx->h2q * 1.44269504088896341f);
-        for (int64_t i = 0; i < nta; i += 16) {
-            const __mmask16 k = nta - i >= 16 ? (__mmask16)0xffff
-                                              : (__mmask16)((1u << (nta - i)) - 1u);
-            const __m512 wv = _mm512_maskz_loadu_ps(k, w + i);
-            const __m512 u = _mm512_sub_ps(vb, wv);
-            __m512 a = exp2_neg_avx512(_mm512_mul_ps(_mm512_mul_ps(u, u), vs));
-            const __m512 p16 = exp2_neg_avx512(_mm512_mul_ps(s16, wv));
-            _mm512_mask_storeu_ps(fx->A + i, k, a);
-            for (int64_t m = 1; m < M; ++m) {
-                a = _mm512_mul_ps(_mm512_mul_ps(a, p16), _mm512_set1_ps(fx->C[m - 1]));
-                _mm512_mask_storeu_ps(fx->A + m * nta + i, k, a);
-            }
-        }
-    }
-#elif defined(PGN_AVX2)
+#if defined(PGN_AVX2)
     if (fx->C) {  /* as above with blocks of 8: A_{m+1} = A_m P^8 C_m */
         const __m256 vb = _mm256_set1_ps(fx->b[0]);
         const __m256 vs = _mm256_set1_ps(-fx->q * 1.44269504088896341f);
