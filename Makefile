@@ -43,7 +43,7 @@ test: $(STAMP) $(WITH_EXTRAS)
 	$(ROS_ENV) && python -m pytest -q test
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check point_gn_ros test scripts launch
+	$(VENV)/bin/ruff check point_gn_ros test tools benchmarks experiments launch
 
 bench: $(STAMP)
 	$(VENV)/bin/point_gn bench
@@ -67,7 +67,7 @@ fuzz: $(STAMP) $(WITH_EXTRAS)
 #   the scan section's LDA may read every standardised dim (--wide-lda scans; CV chose it).
 #   fitted matrices (PCA, whitening, wide-LDA precision) float16 (--matrix-dtype; bank/half.py);
 #   the object test of taught classes on the scans (bank/objects.py; format 6; 1.3 MB; the
-#   shipped file got it by scripts/attach_object_test.py, every other array as it was).
+#   shipped file got it by tools/attach_object_test.py, every other array as it was).
 # 20.4 MB. ~15 min on 2 cores the first time (encoding 88,587 clouds); CACHE=DIR reuses them.
 CACHE ?=
 default-bank: $(STAMP)
