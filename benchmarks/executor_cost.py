@@ -3,7 +3,7 @@
 A publisher node sends a 1,024-point cloud every ~2 ms for 5 s to a node spun by a
 SingleThreadedExecutor on its own thread, whose subscription callback only counts; prints
 that thread's CPU time per received message (issue 13: the classifier node's executor
-thread takes ~1.2 ms a message, BENCHMARKS.md).
+thread takes ~1.2 ms a message, benchmarks/log/2026-12-02.md).
 
 Run: python benchmarks/executor_cost.py [--services N] [--parameter-services] [--raw]
 """

@@ -2,7 +2,7 @@
 
 If the busy loop removes the penalty seen after a sleep, the cost is the core's or vCPU's
 idle state (clock, C-state, the hypervisor); if it leaves it, the cost is the caches' and
-predictors' state, which other work replaces meanwhile (BENCHMARKS.md, 2026-12-05).
+predictors' state, which other work replaces meanwhile (benchmarks/log/2026-12-05.md).
 
 Run: python benchmarks/idle_penalty.py   (prints median ms per mode, twice each, for 1 and 2
 threads)

@@ -1,5 +1,5 @@
 /* Cycles a block step of the AVX-512 separable stages costs, by the mix of its operations
- * (BENCHMARKS.md, "2026-12-05, fifth session"). Not part of the package: a measurement.
+ * (benchmarks/log/2026-12-05.md, "fifth session"). Not part of the package: a measurement.
  *
  *     gcc -O3 -march=native -o port_mix benchmarks/port_mix.c && ./port_mix [GHz]
  *

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Full ModelNet40 accuracy study for BENCHMARKS.md: the discriminant head against the vote.
+"""Full ModelNet40 accuracy study: the discriminant head against the vote (benchmarks/).
 
 Everything is chosen by k-fold CV on the train split (transform, head, gamma,
 temperature, unknown threshold); the test split is encoded and scored once with the

@@ -27,7 +27,7 @@ from point_gn_ros.datasets import open_dataset
 from point_gn_ros.evaluation.openset import auroc, choose_known
 from point_gn_ros.recognizer import make_encoder
 
-# The aligned head chosen by 5-fold CV on the full train split (BENCHMARKS.md).
+# The aligned head chosen by 5-fold CV on the full train split (benchmarks/log/2026-11-29.md).
 GAMMA, ALPHA, LDA_ALPHA, WEIGHT, TEMPERATURE = 160.0, 0.2, 0.01, 0.3, 7.99
 
 
