@@ -43,7 +43,7 @@ test: $(STAMP) $(WITH_EXTRAS)
 	$(ROS_ENV) && python -m pytest -q test
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check point_gn_ros test scripts launch
+	$(VENV)/bin/ruff check point_gn_ros test tools benchmarks experiments launch
 
 bench: $(STAMP)
 	$(VENV)/bin/point_gn bench
@@ -60,14 +60,16 @@ fuzz: $(STAMP) $(WITH_EXTRAS)
 #              by 5-fold CV on the complete objects;
 #   section 2: 8 simulated single-view scans of every train object (hidden point removal, issue
 #              9's protocol); PCA width (224 or 320) and head by 5-fold CV grouped by object on
-#              every 9th object (8 scans at int4 beat 4 at int8 by grouped CV: BENCHMARKS.md);
+#              every 9th object (8 scans at int4 beat 4 at int8 by grouped CV:
+#              benchmarks/log/2026-11-29.md);
 #   a gate (complete vs scan, closed-form LDA) mixes the two at query time;
 #   sparse clouds (every scan) filled up to 1024 points with midpoints of neighbouring points
-#   (--upsample midpoint, chosen over repeated points by grouped CV: BENCHMARKS.md);
+#   (--upsample midpoint, chosen over repeated points by grouped CV:
+#   benchmarks/log/2026-12-01.md);
 #   the scan section's LDA may read every standardised dim (--wide-lda scans; CV chose it).
 #   fitted matrices (PCA, whitening, wide-LDA precision) float16 (--matrix-dtype; bank/half.py);
 #   the object test of taught classes on the scans (bank/objects.py; format 6; 1.3 MB; the
-#   shipped file got it by scripts/attach_object_test.py, every other array as it was).
+#   shipped file got it by tools/attach_object_test.py, every other array as it was).
 # 20.4 MB. ~15 min on 2 cores the first time (encoding 88,587 clouds); CACHE=DIR reuses them.
 CACHE ?=
 default-bank: $(STAMP)
@@ -78,7 +80,7 @@ default-bank: $(STAMP)
 		$(if $(CACHE),--cache $(CACHE)) -o point_gn_ros/data/modelnet40_default.npz
 
 # The one-head sensor-realistic bank (not shipped since the two-section default bank holds the
-# same scans with its own head: BENCHMARKS.md, "Single-view scans"): every train
+# same scans with its own head: benchmarks/log/2026-11-29.md): every train
 # object whole + 4 simulated single-view scans (hidden point removal, issue 9's protocol;
 # VIEW_PROTOCOL=zbuffer for round 1's sparser scans, =mixed for half of each), yaw-aligned
 # (chosen over yaw augmentation by grouped CV), 4 scans at 224 PCA dims (22 MB; chosen over 8

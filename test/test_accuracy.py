@@ -1,4 +1,4 @@
-"""Real-data accuracy on a CI-sized ModelNet40 subset (full-set figures: BENCHMARKS.md)."""
+"""Real-data accuracy on a CI-sized ModelNet40 subset (full-set: benchmarks/RESULTS.md)."""
 
 from conftest import ArrayDataset, load_modelnet_subset
 import numpy as np
@@ -40,7 +40,8 @@ def test_subset_accuracy_head_beats_the_vote() -> None:
 
 def test_subset_kernel_ridge_term_on_real_features() -> None:
     # 25 train objects per class as the bank (the ridge's gain grows with the bank: +1.2
-    # CV points on the full train split, BENCHMARKS.md), 5 test objects per class as queries.
+    # CV points on the full train split, benchmarks/log/2026-12-02.md), 5 test objects per
+    # class as queries.
     data, enc, feats, queries, test_y = _subset(25)
     head = build_bank(data, encoder=enc, feats=feats, folds=3, progress=False)
     ridge = build_bank(data, encoder=enc, feats=feats, folds=3, progress=False, ridge=True,

@@ -367,7 +367,7 @@ def test_enrollment_under_load_loses_no_answer(harness: Harness, tiny_bank: Path
         effect = first_new - t_enroll
         print(f'enrollment of 20 examples at {rate:g} objects/s took effect after '
               f'{effect:.2f} s (first answer naming it, publish to publish)')
-        assert effect < 5.0           # the goal (1 s) is measured by scripts/enroll_latency.py
+        assert effect < 5.0           # the goal (1 s) is measured by benchmarks/enroll_latency.py
     finally:
         if c is not None:
             c.close()
