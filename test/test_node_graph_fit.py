@@ -1,0 +1,105 @@
+"""The node's fit to the graph without DDS: per-topic settings, 'no segment' ids, QoS choice.
+
+The DDS side (publishers of either reliability answered, the incompatible-QoS diagnostic,
+a topic served without the segment field) is test/test_node_qos.py.
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from point_gn_ros.node.input_qos import InputQoS, choose_reliability, incompatible
+from point_gn_ros.node.params import (PARAMETERS, NodeConfigError, NoSegment,
+                                      settings_from_values, topic_key,
+                                      unknown_override_warnings)
+from point_gn_ros.pointcloud2 import decode_xyz, xyz_to_pointcloud2
+
+DEFAULTS = {name: default for name, (default, _, _) in PARAMETERS.items()}
+
+
+def _pub(reliability: str) -> SimpleNamespace:
+    return SimpleNamespace(qos_profile=SimpleNamespace(
+        reliability=SimpleNamespace(name=reliability.upper())))
+
+
+def test_per_topic_settings_override_the_nodes() -> None:
+    values = DEFAULTS | {'input_topics': ['/lidar/clusters', 'camera/objects'],
+                         'segment_field': 'label'}
+    s = settings_from_values(values, {'topics.lidar.clusters.segment_field': '',
+                                      'topics.lidar.clusters.qos_reliability': 'best_effort',
+                                      'topics.camera.objects.up_axis': '-y'})
+    assert topic_key('/lidar/clusters') == 'lidar.clusters'
+    lidar, camera = s.topic(0), s.topic(1)
+    assert (lidar.segment_field, lidar.up_axis, lidar.qos_reliability) == (
+        '', 'auto', 'best_effort')
+    assert (camera.segment_field, camera.up_axis, camera.qos_reliability) == (
+        'label', '-y', 'auto')
+    # Without overrides every topic has the node's settings.
+    plain = settings_from_values(values)
+    assert plain.topic(1).segment_field == 'label' and plain.topic(0).up_axis == 'auto'
+
+
+@pytest.mark.parametrize(('name', 'value', 'match'), [
+    ('topics.nowhere.segment_field', '', 'no input topic'),
+    ('topics.segmented_objects.segment_feild', 'x', "did you mean 'segment_field'"),
+    ('topics.segmented_objects.up_axis', 'up', 'must be one of'),
+    ('topics.segmented_objects.qos_reliability', 'fast', 'must be one of'),
+])
+def test_bad_per_topic_settings_are_one_clear_error(name: str, value: str, match: str) -> None:
+    with pytest.raises(NodeConfigError, match=match):
+        settings_from_values(DEFAULTS, {name: value})
+
+
+def test_topic_parameters_are_not_taken_for_misspellings() -> None:
+    assert unknown_override_warnings(['topics.a.b.segment_field']) == []
+    assert unknown_override_warnings(['segmnt_field'])[0].endswith("'segment_field'?")
+
+
+def test_no_segment_ids_parse_and_refuse_junk() -> None:
+    assert NoSegment.parse(['negative', 'max']) == NoSegment(True, True, frozenset())
+    assert NoSegment.parse(['0', '0xFFFF']) == NoSegment(False, False, frozenset({0, 65535}))
+    with pytest.raises(NodeConfigError, match='no_segment_ids'):
+        settings_from_values(DEFAULTS | {'no_segment_ids': ['negativ']})
+
+
+@pytest.mark.parametrize('dtype', [np.uint32, np.uint16, np.uint8])
+def test_unsigned_type_max_is_unsegmented(dtype: type) -> None:
+    """PCL's uint32 0xFFFFFFFF (and uint16 65535) "no label" is not an object, nor an error."""
+    from point_gn_ros.pointcloud2 import split_segments
+
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(300, 3)).astype(np.float32)
+    ids = np.repeat(np.array([0, 1, np.iinfo(dtype).max], dtype=dtype), 100)
+    msg = xyz_to_pointcloud2(None, xyz, {'label': ids})
+    decoded = decode_xyz(msg, ('label',))
+    no_seg = NoSegment.parse(DEFAULTS['no_segment_ids'])
+    parts = split_segments(decoded, 'label', skip_negative=no_seg.negative,
+                           skip_type_max=no_seg.type_max, skip_ids=no_seg.ids)
+    assert [seg for seg, _ in parts] == [0, 1]
+    assert all(len(part) == 100 for _, part in parts)
+
+
+def test_auto_reliability_follows_the_publishers() -> None:
+    assert choose_reliability('auto', [], None) == 'reliable'
+    assert choose_reliability('auto', [_pub('reliable')], 'best_effort') == 'reliable'
+    assert choose_reliability('auto', [_pub('reliable'), _pub('best_effort')],
+                              'reliable') == 'best_effort'
+    # Publishers gone: keep what the subscription has (no churn).
+    assert choose_reliability('auto', [], 'best_effort') == 'best_effort'
+    assert choose_reliability('reliable', [_pub('best_effort')], None) == 'reliable'
+    assert incompatible([_pub('best_effort'), _pub('reliable')], 'reliable') == [
+        'publisher best_effort, subscription reliable']
+    assert incompatible([_pub('best_effort')], 'best_effort') == []
+
+    qos = InputQoS(['reliable'])
+    assert qos.choose(0, [_pub('best_effort')]) is None         # fixed: never switches
+    assert qos.observe(0, [_pub('best_effort')]) == [
+        'publisher best_effort, subscription reliable']
+    assert qos.observe(0, [_pub('best_effort')]) == []          # warned once
+    qos.on_event(0, 1)
+    assert qos.problem(0) == ('1 of 1 publisher(s) with incompatible QoS (publisher '
+                              'best_effort, subscription reliable)')
+    assert qos.values(0)['incompatible_qos_events'] == 1
