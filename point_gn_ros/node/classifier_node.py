@@ -214,20 +214,20 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         """Timer: follow each 'auto' topic's publishers; warn once per incompatible kind."""
         if not self._active:
             return
-        changed = False
-        for i, sub in enumerate(self._subs):
-            wanted = self._input_qos.choose(i, self.get_publishers_info_by_topic(sub.topic_name))
-            if wanted is not None:
-                self._resubscribe(i, wanted)
-                changed = True
-            self._describe_incompatible(i)
-        if changed:
-            self._intake = Intake(self.context, self._subs, self._on_cloud,
-                                  self._on_intake_error)
+        try:
+            for i, topic in enumerate(self._pipeline.topic_names):
+                wanted = self._input_qos.choose(i, self.get_publishers_info_by_topic(topic))
+                if wanted is not None:
+                    self._resubscribe(i, wanted)
+                self._describe_incompatible(i)
+        finally:
+            if self._intake is None:           # stopped by a re-subscription
+                self._intake = Intake(self.context, self._subs, self._on_cloud,
+                                      self._on_intake_error)
 
     def _describe_incompatible(self, index: int) -> None:
         """Record topic `index`'s publishers; warn once per kind of incompatible one."""
-        topic = self._subs[index].topic_name
+        topic = self._pipeline.topic_names[index]
         for text in self._input_qos.observe(index, self.get_publishers_info_by_topic(topic)):
             self.get_logger().warning(
                 f'input {topic}: a publisher offers incompatible QoS ({text}): none of its '
@@ -237,11 +237,10 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
     def _resubscribe(self, index: int, reliability: str) -> None:
         """Re-create input `index`'s subscription (the queue, stats and worker go on)."""
         self._stop_intake()                 # it waits on the subscription being replaced
-        old = self._subs[index]
-        self.destroy_subscription(old)
+        self.destroy_subscription(self._subs[index])
         self._subs[index] = self._subscribe(index, reliability, again=True)
-        self.get_logger().info(f'input {old.topic_name}: publishers changed, subscribed '
-                               f'again with {reliability}')
+        self.get_logger().info(f'input {self._pipeline.topic_names[index]}: publishers '
+                               f'changed, subscribed again with {reliability}')
 
     def _on_incompatible_qos(self, index: int, event: Any) -> None:
         """The middleware found a publisher this subscription cannot match (executor)."""

@@ -28,9 +28,8 @@ class DiagnosticsMixin:
             return []
         # Every publisher on the graph, matched or not: one with incompatible QoS is a
         # publisher, reported as such, never as "no publisher".
-        silent = self._watchdog.problems([sub.topic_name for sub in self._subs],
-                                         [self.count_publishers(sub.topic_name)
-                                          for sub in self._subs],
+        topics = self._pipeline.topic_names
+        silent = self._watchdog.problems(topics, [self.count_publishers(t) for t in topics],
                                          self.settings.input_timeout_s)
         out = []
         for i, problem in enumerate(silent):
