@@ -59,7 +59,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Publish the bag's clouds to the running classifier node (or only listen, "
                     'or classify offline), match its answers by header stamp and report '
                     'accuracy, delivery and latency.')
-    r.add_argument('bag', metavar='BAG', help='bag written by `point_gn bag write`')
+    r.add_argument('bag', metavar='BAG',
+                   help='any rosbag2 bag (mcap or sqlite3) of PointCloud2 messages; a bag '
+                        'written by `point_gn bag write` (ground truth) gets the accuracy '
+                        'report')
     how = r.add_mutually_exclusive_group()
     how.add_argument('--offline', action='store_true',
                      help='no ROS graph: classify with the core library (same report)')
@@ -70,7 +73,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                           '(or --timeout passes)')
     how.add_argument('--rate', type=float, default=1.0, metavar='R',
                    help='publish at R x the recorded rate (default 1)')
-    r.add_argument('--topic', default=None, help='cloud topic in the bag (default: auto)')
+    r.add_argument('--topic', action='append', default=None, metavar='TOPIC',
+                   help='cloud topic in the bag, repeatable (default: every PointCloud2 topic; '
+                        'a ground-truth bag: its cloud topic)')
+    r.add_argument('--csv', default=None, metavar='ANSWERS.csv',
+                   help='bag without ground truth: one row per object (stamp, topic, frame, '
+                        'segment, label, score, top-k, latency)')
+    r.add_argument('--output-bag', default=None, metavar='OUT_BAG',
+                   help='bag without ground truth: write the input clouds and the answers '
+                        '(~/classifications PointCloud2) to a new bag')
+    r.add_argument('--segment-field', default='', metavar='FIELD',
+                   help='offline: the node parameter segment_field (default none: a message '
+                        'is one object)')
+    r.add_argument('--up-axis', default='auto',
+                   choices=('auto', 'z', '-z', 'y', '-y', 'x', '-x'),
+                   help='offline: the node parameter up_axis (default auto)')
     r.add_argument('--node-name', default=None, metavar='NAME',
                    help='classifier node name (answers on /NAME/classifications; default: the '
                         'node subscribed to the cloud topic)')
@@ -91,7 +108,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='exit 1 unless at least this share (0-1) of the sent messages is '
                         'answered (default 0: exit 1 only when nothing is); duplicate '
                         'answers also exit 1')
-    r.add_argument('--json', default=None, metavar='REPORT.json', help='write the JSON report')
+    r.add_argument('--json', default=None, metavar='REPORT.json',
+                   help='write the JSON report (without ground truth: every answer)')
     r.add_argument('--markdown', default=None, metavar='REPORT.md',
                    help='write the Markdown report')
     r.add_argument('--png', default=None, metavar='PREFIX',
@@ -136,7 +154,19 @@ def _replay(args: argparse.Namespace) -> int:
     if not 0.0 <= args.min_answered <= 1.0:
         from point_gn_ros.bag.errors import ReplayError
         raise ReplayError(f'--min-answered must be a share in [0, 1], got {args.min_answered:g}')
-    contents = read_bag(args.bag, args.topic, keep_clouds=args.offline)
+    from point_gn_ros.bag.errors import NoGroundTruthError
+
+    topics = args.topic or []
+    try:
+        if len(topics) > 1:
+            raise NoGroundTruthError('several topics: answers only')
+        contents = read_bag(args.bag, topics[0] if topics else None,
+                            keep_clouds=args.offline)
+    except NoGroundTruthError:
+        return _replay_answers(args)
+    if args.csv or args.output_bag:
+        print('point_gn: replay: --csv and --output-bag are for bags without ground truth; '
+              'ignored', file=sys.stderr)
     if args.offline:
         from point_gn_ros.bag.offline import run_offline
         result = run_offline(contents, args.bank, args.device, args.unknown_threshold,
@@ -158,6 +188,79 @@ def _replay(args: argparse.Namespace) -> int:
     for problem in problems:
         print(f'point_gn: replay: {problem}', file=sys.stderr)
     return 1 if problems else 0
+
+
+def _replay_answers(args: argparse.Namespace) -> int:
+    """A bag without ground truth: classify every cloud, write and summarise the answers."""
+    from point_gn_ros.bag.any_bag import (CLASSIFICATIONS_TOPIC, classify_live,
+                                          classify_offline, format_summary, read_clouds,
+                                          summarise, write_answers, write_output_bag)
+
+    bag = read_clouds(args.bag, args.topic)
+    header: dict = {'bag': str(bag.path), 'storage': bag.storage, 'topics': bag.topics}
+    if args.offline:
+        answers, names, rejected = classify_offline(
+            bag, args.bank, args.device, args.unknown_threshold, args.min_points,
+            args.segment_field, up_axis=args.up_axis)
+        answered = len({a.message for a in answers})
+        header |= {'mode': 'offline', 'rejected': rejected}
+        answer_msgs = _offline_answer_msgs(bag, answers, names) if args.output_bag else []
+        answers_topic = CLASSIFICATIONS_TOPIC
+    else:
+        if args.listen_only or args.lockstep:
+            print('point_gn: replay: a bag without ground truth is sent at --rate; '
+                  '--listen-only / --lockstep apply to ground-truth bags', file=sys.stderr)
+        answers, names, info = classify_live(
+            bag, args.node_name, args.rate, args.timeout, args.discovery_timeout,
+            log=lambda text: print(f'[replay] {text}', file=sys.stderr, flush=True))
+        answered = info['answered']
+        header |= {'mode': 'live', 'node': info['node'], 'sent': info['sent'],
+                   'unmatched_answers': info['unmatched_answers']}
+        from rclpy.serialization import serialize_message
+        answer_msgs = [(serialize_message(m), log_ns) for m, log_ns in info['answer_messages']]
+        answers_topic = (info['node'] or '/point_gn') + '/classifications'
+    summary = summarise(answers, len(bag.messages), answered)
+    header |= {'class_names': names, 'summary': summary}
+    write_answers(answers, header, json_path=args.json, csv_path=args.csv)
+    if args.output_bag:
+        write_output_bag(bag, args.output_bag, answer_msgs, answers_topic,
+                         'sqlite3' if bag.storage == 'sqlite3' else 'mcap')
+    if not args.quiet:
+        print(format_summary(summary))
+    if bag.messages and answered == 0:
+        print(f'point_gn: replay: answered 0 of {len(bag.messages)} message(s)', file=sys.stderr)
+        return 1
+    return 0
+
+
+def _offline_answer_msgs(bag: object, answers: list, names: list[str]) -> list:
+    """Offline answers as ~/classifications CDR, logged at their input message's time."""
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Header
+    from builtin_interfaces.msg import Time
+
+    import numpy as np
+
+    from point_gn_ros.pointcloud2 import make_classifications
+
+    by_msg: dict[int, list] = {}
+    for a in answers:
+        by_msg.setdefault(a.message, []).append(a)
+    out = []
+    for m in bag.messages:
+        rows = by_msg.get(m.index)
+        if not rows:
+            continue
+        index = {n: i for i, n in enumerate(names)}
+        header = Header(frame_id=m.frame_id, stamp=Time(sec=m.stamp_ns // 1_000_000_000,
+                                                        nanosec=m.stamp_ns % 1_000_000_000))
+        msg = make_classifications(
+            header, np.zeros((len(rows), 3)), [a.class_id for a in rows],
+            [a.score for a in rows], [[index.get(n, -1) for n, _ in a.topk] for a in rows],
+            [[s for _, s in a.topk] for a in rows], np.array([a.segment for a in rows]),
+            bag.topics.index(m.topic))
+        out.append((serialize_message(msg), m.log_ns))
+    return out
 
 
 def replay_problems(report: dict, min_answered: float = 0.0) -> list[str]:
