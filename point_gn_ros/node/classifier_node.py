@@ -61,6 +61,7 @@ from point_gn_ros.node.input_qos import BEST_EFFORT, RELIABLE, InputQoS
 from point_gn_ros.node.intake import Intake, NotForExecutors
 from point_gn_ros.node.outputs import Outputs, vision_msgs_available
 from point_gn_ros.node.parameter_mixin import ParameterMixin
+from point_gn_ros.node.parent_death import exit_with_parent
 from point_gn_ros.node.params import (PARAMETERS, NodeConfigError, Settings,
                                       resolve_unknown_threshold, settings_from_values)
 from point_gn_ros.node.pipeline import Answer, Pipeline
@@ -466,7 +467,8 @@ def autostart(node: ClassifierNode) -> None:
 def main(args: list[str] | None = None) -> int:
     """Entry point (console script ``classifier_node``); returns the exit code."""
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    rclpy.init(args=args)
+    rclpy.init(args=args)               # its signal handlers: SIGINT and SIGTERM shut down
+    exit_with_parent()                  # under ros2 launch: stop when launch is killed
     node: ClassifierNode | None = None
     code = 0
     try:
