@@ -103,3 +103,26 @@ def test_auto_reliability_follows_the_publishers() -> None:
     assert qos.problem(0) == ('1 of 1 publisher(s) with incompatible QoS (publisher '
                               'best_effort, subscription reliable)')
     assert qos.values(0)['incompatible_qos_events'] == 1
+
+
+def test_fuzz_client_honours_ros_domain_id(monkeypatch: pytest.MonkeyPatch) -> None:
+    from point_gn_ros.clients.fuzz import default_domain_id
+
+    monkeypatch.setenv('ROS_DOMAIN_ID', '46')
+    assert default_domain_id() == 46
+    monkeypatch.delenv('ROS_DOMAIN_ID')
+    assert 150 <= default_domain_id() <= 230
+
+
+def test_default_is_a_bank_name(tmp_path: object, capsys: pytest.CaptureFixture[str]) -> None:
+    from point_gn_ros.bank.store import default_bank_path
+    from point_gn_ros.cli import main as cli_main
+    from point_gn_ros.commands.enroll_cmd import resolve_bank
+    from point_gn_ros.errors import BankError
+
+    assert cli_main(['bank', 'path']) == 0
+    assert capsys.readouterr().out.strip() == str(default_bank_path())
+    assert resolve_bank('default') == default_bank_path()
+    assert resolve_bank('default', 'out.npz') == default_bank_path()
+    with pytest.raises(BankError, match='-o OUT'):
+        resolve_bank('default', None)          # the shipped bank is never rewritten
