@@ -126,3 +126,39 @@ def test_default_is_a_bank_name(tmp_path: object, capsys: pytest.CaptureFixture[
     assert resolve_bank('default', 'out.npz') == default_bank_path()
     with pytest.raises(BankError, match='-o OUT'):
         resolve_bank('default', None)          # the shipped bank is never rewritten
+
+
+def test_worker_counts_numeric_errors_instead_of_logging_them() -> None:
+    """A numpy overflow in the worker (here in its observe hook) is counted, not warned."""
+    import threading
+    import warnings
+
+    from point_gn_ros.node.pipeline import Pipeline
+    from point_gn_ros.node.stats import NodeStats
+    from point_gn_ros.node.work_queue import WorkQueue
+    from point_gn_ros.recognizer import Recognizer
+
+    stats, stop = NodeStats(1), threading.Event()
+    queue: WorkQueue = WorkQueue(1, 10)
+    pipe = Pipeline(Recognizer.from_bank(None), settings_from_values(DEFAULTS), stats,
+                    lambda key, text: None, stop)
+    big = np.full(4, 3e38, np.float32)
+    pipe.observe = lambda jobs: big * np.float32(10)      # overflow: inf, RuntimeWarning
+    answers: list = []
+    rng = np.random.default_rng(0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter('always')
+        worker = threading.Thread(target=pipe.serve, args=(queue, answers.append))
+        worker.start()
+        stats.on_received(0)
+        queue.put(0, xyz_to_pointcloud2(None, rng.normal(size=(200, 3)).astype(np.float32)))
+        for _ in range(600):
+            if answers:
+                break
+            stop.wait(0.05)
+        stop.set()
+        queue.close()
+        worker.join(10)
+    assert answers, 'the message was not answered'
+    assert stats.snapshot([0]).numeric_warnings >= 1
+    assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], caught
