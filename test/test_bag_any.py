@@ -191,3 +191,10 @@ def test_bag_play_publishes_at_the_recorded_rate(bags: dict, tmp_path: Path) -> 
         assert all(m.header.frame_id == 'velodyne' and m.point_step == 32 for m in got)
     finally:
         harness.close()
+
+
+def test_bag_info_lists_a_foreign_bags_clouds(bags: dict,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    _run(['bag', 'info', str(bags['clusters_mcap'][0])])
+    out = capsys.readouterr().out
+    assert 'no ground truth' in out and f'{CLUSTERS} 6' in out

@@ -149,9 +149,20 @@ def _write(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
+    from point_gn_ros.bag.errors import NoGroundTruthError
     from point_gn_ros.bag.reader import read_bag
 
-    contents = read_bag(args.bag, args.topic)
+    try:
+        contents = read_bag(args.bag, args.topic)
+    except NoGroundTruthError as exc:
+        from collections import Counter
+
+        from point_gn_ros.bag.any_bag import read_clouds
+        bag = read_clouds(args.bag, [args.topic] if args.topic else None)
+        per_topic = Counter(m.topic for m in bag.messages)
+        print(f'{bag.path} ({bag.storage}): no ground truth ({exc}); PointCloud2 messages: '
+              + ', '.join(f'{t} {n}' for t, n in sorted(per_topic.items())))
+        return 0
     print(contents.summary())
     for key, value in sorted(contents.custom.items()):
         if not key.endswith('class_names'):
