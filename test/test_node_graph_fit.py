@@ -162,3 +162,39 @@ def test_worker_counts_numeric_errors_instead_of_logging_them() -> None:
     assert answers, 'the message was not answered'
     assert stats.snapshot([0]).numeric_warnings >= 1
     assert not [w for w in caught if issubclass(w.category, RuntimeWarning)], caught
+
+
+def test_launched_node_stops_when_its_parent_dies(tmp_path: object) -> None:
+    """node/parent_death.py: the child gets SIGTERM when the process that started it exits.
+
+    `ros2 launch` exits on SIGTERM without stopping its processes; this stands in for it.
+    """
+    import os
+    import subprocess
+    import sys
+    import time
+
+    child = ('import time; from point_gn_ros.node.parent_death import exit_with_parent; '
+             'assert exit_with_parent(); print("ready", flush=True); time.sleep(60)')
+    parent = ('import subprocess, sys; '
+              f'p = subprocess.Popen([sys.executable, "-c", {child!r}], '
+              'stdout=subprocess.PIPE, text=True); '
+              'print(p.pid, flush=True); assert p.stdout.readline().strip() == "ready"')
+    out = subprocess.run([sys.executable, '-c', parent], capture_output=True, text=True,
+                         timeout=60, env=dict(os.environ, POINT_GN_EXIT_WITH_PARENT='1'))
+    assert out.returncode == 0, out.stderr
+    pid = int(out.stdout.split()[0])
+
+    def alive() -> bool:
+        try:
+            state = open(f'/proc/{pid}/stat').read().rsplit(')', 1)[1].split()[0]
+        except OSError:
+            return False
+        return state not in ('Z', 'X')
+    end = time.monotonic() + 10
+    while alive() and time.monotonic() < end:
+        time.sleep(0.05)
+    stopped = not alive()
+    if not stopped:
+        os.kill(pid, 9)
+    assert stopped, 'the child outlived its parent'
