@@ -158,6 +158,9 @@ def test_live_answers_every_object_like_offline(bags: dict, tiny_bank: Path, tmp
     with Reader(out_bag) as reader:
         counts = {t: i.msgcount for t, i in reader.topics.items()}
     assert counts[f'/{NODE}/classifications'] == live['sent']
+    from point_gn_ros.node.outputs import vision_msgs_available
+    if vision_msgs_available():          # the node publishes them: they go in as well
+        assert counts[f'/{NODE}/detections'] == live['sent']
     assert sum(n for t, n in counts.items() if t.startswith('/lidar/')) == live['sent']
 
 

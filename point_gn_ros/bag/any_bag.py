@@ -243,14 +243,27 @@ def classify_live(bag: BagClouds, node_name: str | None = None, rate: float = 1.
                 names[:] = msg.data.split('\n')
                 lock.notify_all()
 
+        detections: list[tuple[bytes, float]] = []
+        det_sub = None
+        if _vision_msgs():
+            from vision_msgs.msg import Detection3DArray
+            det_sub = node.create_subscription(Detection3DArray, fqn + '/detections',
+                                     lambda raw: detections.append((raw, time.monotonic())),
+                                     QoSProfile(depth=1000,
+                                                reliability=ReliabilityPolicy.RELIABLE),
+                                     raw=True)
         cls_sub = node.create_subscription(PointCloud2, fqn + '/classifications', on_answer,
                                            QoSProfile(depth=1000,
                                                       reliability=ReliabilityPolicy.RELIABLE))
         node.create_subscription(String, fqn + '/class_names', on_names, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        while time.monotonic() < end and not (cls_sub.get_publisher_count() and names):
+        while time.monotonic() < end and not (
+                cls_sub.get_publisher_count() and names
+                and (det_sub is None or det_sub.get_publisher_count())):
             time.sleep(0.05)
+        if det_sub is not None:
+            time.sleep(0.5)      # the node builds detections once it sees a subscriber
         log(f'node {fqn} found; sending {len(bag.messages)} message(s) at {rate:g} x the '
             'recorded rate')
         base, t0 = bag.messages[0].log_ns, time.monotonic()
@@ -284,7 +297,8 @@ def classify_live(bag: BagClouds, node_name: str | None = None, rate: float = 1.
             'unmatched_answers': extra['unmatched'],
             # each answer at the bag time it would have had: recorded start + its delay
             'answer_messages': [(answered[i][0], base + int((answered[i][1] - t0) * 1e9))
-                                for i in sorted(answered)]}
+                                for i in sorted(answered)],
+            'detections': [(bytes(raw), base + int((t - t0) * 1e9)) for raw, t in detections]}
     return answers, class_names, info
 
 
@@ -345,13 +359,44 @@ def write_answers(answers: list[ObjectAnswer], header: dict[str, Any], *,
     return written
 
 
+def _vision_msgs() -> bool:
+    try:
+        import vision_msgs.msg  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+DETECTIONS = 'vision_msgs/msg/Detection3DArray'
+
+
+def _with_vision_msgs(typestore: Any) -> bool:
+    """Register vision_msgs' message definitions (from its ROS share) in `typestore`."""
+    if DETECTIONS in typestore.types:
+        return True
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        from rosbags.typesys import get_types_from_msg
+        share = Path(get_package_share_directory('vision_msgs')) / 'msg'
+        types: dict[str, Any] = {}
+        for f in sorted(share.glob('*.msg')):
+            types.update(get_types_from_msg(f.read_text(), f'vision_msgs/msg/{f.stem}'))
+        typestore.register(types)
+    except Exception:  # noqa: BLE001 - no vision_msgs share: the bag goes without detections
+        return False
+    return DETECTIONS in typestore.types
+
+
 def write_output_bag(bag: BagClouds, out: str | os.PathLike[str],
                      answer_msgs: list[tuple[bytes, int]], answers_topic: str,
-                     storage: str = 'mcap') -> Path:
+                     storage: str = 'mcap',
+                     detections: list[tuple[bytes, int]] | None = None,
+                     detections_topic: str = '') -> Path:
     """A new bag: the input clouds as recorded plus the answers (raw CDR, log time ns).
 
-    The answers are sensor_msgs/PointCloud2 classifications on `answers_topic`. Nothing is
-    left behind when writing fails.
+    The answers are sensor_msgs/PointCloud2 classifications on `answers_topic` and, when
+    given (and vision_msgs' definitions are found), Detection3DArray on `detections_topic`.
+    Nothing is left behind when writing fails.
     """
     import shutil
 
@@ -370,6 +415,9 @@ def write_output_bag(bag: BagClouds, out: str | os.PathLike[str],
         ans = writer.add_connection(answers_topic, POINTCLOUD2, typestore=typestore)
         rows = [(m.log_ns, conns[m.topic], m.raw) for m in bag.messages]
         rows += [(t, ans, raw) for raw, t in answer_msgs]
+        if detections and _with_vision_msgs(typestore):
+            det = writer.add_connection(detections_topic, DETECTIONS, typestore=typestore)
+            rows += [(t, det, raw) for raw, t in detections]
         for log_ns, conn, raw in sorted(rows, key=lambda r: r[0]):
             writer.write(conn, log_ns, raw)
         writer.close()

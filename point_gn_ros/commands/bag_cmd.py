@@ -93,7 +93,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'segment, label, score, top-k, latency)')
     r.add_argument('--output-bag', default=None, metavar='OUT_BAG',
                    help='bag without ground truth: write the input clouds and the answers '
-                        '(~/classifications PointCloud2) to a new bag')
+                        '(~/classifications PointCloud2; live, with vision_msgs: also '
+                        '~/detections Detection3DArray) to a new bag')
     r.add_argument('--segment-field', default='', metavar='FIELD',
                    help='offline: the node parameter segment_field (default none: a message '
                         'is one object)')
@@ -238,6 +239,7 @@ def _replay_answers(args: argparse.Namespace) -> int:
         header |= {'mode': 'offline', 'rejected': rejected}
         answer_msgs = _offline_answer_msgs(bag, answers, names) if args.output_bag else []
         answers_topic = CLASSIFICATIONS_TOPIC
+        detections = []
     else:
         if args.listen_only or args.lockstep:
             print('point_gn: replay: a bag without ground truth is sent at --rate; '
@@ -251,12 +253,14 @@ def _replay_answers(args: argparse.Namespace) -> int:
         from rclpy.serialization import serialize_message
         answer_msgs = [(serialize_message(m), log_ns) for m, log_ns in info['answer_messages']]
         answers_topic = (info['node'] or '/point_gn') + '/classifications'
+        detections = info['detections']
     summary = summarise(answers, len(bag.messages), answered)
     header |= {'class_names': names, 'summary': summary}
     write_answers(answers, header, json_path=args.json, csv_path=args.csv)
     if args.output_bag:
         write_output_bag(bag, args.output_bag, answer_msgs, answers_topic,
-                         'sqlite3' if bag.storage == 'sqlite3' else 'mcap')
+                         'sqlite3' if bag.storage == 'sqlite3' else 'mcap', detections,
+                         answers_topic.rsplit('/', 1)[0] + '/detections')
     if not args.quiet:
         print(format_summary(summary))
     if bag.messages and answered == 0:
