@@ -55,7 +55,8 @@ def _lidar_msg(typestore: object, stamp_ns: int, xyz: np.ndarray,
         row_step=32 * len(xyz), data=rec.view(np.uint8).reshape(-1), is_dense=True)
 
 
-def write_lidar_bag(path: Path, storage: str, segmented: bool) -> tuple[Path, int]:
+def write_lidar_bag(path: Path, storage: str, segmented: bool,
+                    topic: str | None = None) -> tuple[Path, int]:
     """Three scans; returns (bag, objects). Clusters: 2 messages a scan, one stamp."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
@@ -67,7 +68,7 @@ def write_lidar_bag(path: Path, storage: str, segmented: bool) -> tuple[Path, in
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP if storage == 'mcap'
                     else StoragePlugin.SQLITE3)
     writer.open()
-    topic = SEGMENTED if segmented else CLUSTERS
+    topic = topic or (SEGMENTED if segmented else CLUSTERS)
     conn = writer.add_connection(topic, 'sensor_msgs/msg/PointCloud2', typestore=store)
     t0, objects = 1_700_000_000 * 10**9, 0
     for scan in range(3):
@@ -164,7 +165,7 @@ def test_live_answers_every_object_like_offline(bags: dict, tiny_bank: Path, tmp
     assert sum(n for t, n in counts.items() if t.startswith('/lidar/')) == live['sent']
 
 
-def test_bag_play_publishes_at_the_recorded_rate(bags: dict, tmp_path: Path) -> None:
+def test_bag_play_publishes_at_the_recorded_rate(tmp_path: Path) -> None:
     """`point_gn bag play` (no ros2 bag): every message, paced by the recorded times."""
     import subprocess
     import sys
@@ -174,15 +175,18 @@ def test_bag_play_publishes_at_the_recorded_rate(bags: dict, tmp_path: Path) -> 
 
     from node_testing import REPO, Harness, sensor_qos
 
+    topic = '/bag_play_test/clusters'              # no node of this module listens there
+    bag, _ = write_lidar_bag(tmp_path / 'play', 'mcap', False, topic)
     harness = Harness('bag_play_test')
     try:
-        got = harness.collect(PointCloud2, CLUSTERS, sensor_qos())
+        got = harness.collect(PointCloud2, topic, sensor_qos())
         env = dict(__import__('os').environ, ROS_DOMAIN_ID=str(DOMAIN_ID),
                    ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
         t0 = time.monotonic()
         player = subprocess.Popen([sys.executable, '-m', 'point_gn_ros.cli', 'bag', 'play',
-                                   str(bags['clusters_mcap'][0]), '--rate', '0.5',
-                                   '--topics', CLUSTERS], env=env, cwd=REPO,
+                                   str(bag), '--rate', '0.5', '--topics', topic,
+                                   '--wait-for-subscribers', '60'],
+                                  env=env, cwd=REPO,
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         assert harness.spin_until(lambda: len(got) == 6 or player.poll() not in (None, 0),
                                   60.0), player.communicate()

@@ -26,8 +26,12 @@ def _latched(conn: Any) -> bool:
 
 def play(path: str | os.PathLike[str], topics: list[str] | None = None, rate: float = 1.0,
          loop: bool = False, log: Callable[[str], None] = print,
-         discovery_s: float = 1.0) -> int:
-    """Publish the bag (rate x recorded); returns messages published. Ctrl-C stops."""
+         discovery_s: float = 1.0, wait_subscribers_s: float = 0.0) -> int:
+    """Publish the bag (rate x recorded); returns messages published. Ctrl-C stops.
+
+    discovery_s: pause before the first message, so that subscribers can match;
+    wait_subscribers_s > 0: also wait (at most that long) until every topic has one.
+    """
     import rclpy
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from rosidl_runtime_py.utilities import get_message
@@ -70,6 +74,10 @@ def play(path: str | os.PathLike[str], topics: list[str] | None = None, rate: fl
         log(f'playing {len(rows)} message(s) on {", ".join(pubs)} at {rate:g} x'
             + (' (looping)' if loop else ''))
         time.sleep(discovery_s)          # let subscribers match before the first message
+        end = time.monotonic() + wait_subscribers_s
+        while (time.monotonic() < end
+               and not all(p.get_subscription_count() for p in pubs.values())):
+            time.sleep(0.05)
         base = rows[0][0]
         while True:
             t0 = time.monotonic()

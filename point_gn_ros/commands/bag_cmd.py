@@ -64,6 +64,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument('--loop', action='store_true', help='start again at the end (Ctrl-C stops)')
     pl.add_argument('--topics', nargs='+', default=None, metavar='TOPIC',
                     help='only these topics (default: all)')
+    pl.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
+                    help='before playing, wait up to S s until every topic has a subscriber '
+                         '(default 0: a 1 s pause only)')
     pl.set_defaults(func=_play)
 
     r = sub.add_parser(
@@ -175,7 +178,8 @@ def _play(args: argparse.Namespace) -> int:
     from point_gn_ros.bag.play import play
 
     sent = play(args.bag, args.topics, args.rate, args.loop,
-                log=lambda text: print(f'[bag play] {text}', file=sys.stderr, flush=True))
+                log=lambda text: print(f'[bag play] {text}', file=sys.stderr, flush=True),
+                wait_subscribers_s=args.wait_for_subscribers)
     print(f'published {sent} message(s)')
     return 0
 
