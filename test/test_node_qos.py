@@ -108,6 +108,12 @@ def test_sensor_data_and_reliable_publishers_are_both_answered(
     assert harness.spin_until(
         lambda: latest_diagnostics(io['diag'], f'input /{SENSOR}').get('qos_reliability')
         == 'best_effort', 5.0)
+    # Both kinds on one topic: the best-effort subscription hears the reliable one too.
+    both = harness.node.create_publisher(PointCloud2, SENSOR, reliable_qos())
+    harness.wait_for_subscribers([both], node, timeout=30.0)
+    answers = _publish_all(harness, io, both, clouds[:3], 250, node)
+    assert {int(a['topic_index'][0]) for a in answers} == {0}
+    assert node.log().count(f'input /{SENSOR}: publishers changed') == 1
 
 
 def test_incompatible_publisher_is_described_not_missing(
