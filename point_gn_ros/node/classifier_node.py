@@ -114,6 +114,7 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         self._subs: list[Any] = []
         self._input_qos: InputQoS | None = None
         self._qos_timer: Any = None
+        self._qos_soon: Any = None
         self._intake: Intake | None = None
         self._pipeline: Pipeline | None = None
         self._worker: threading.Thread | None = None
@@ -167,6 +168,9 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         self._intake = Intake(self.context, self._subs, self._on_cloud, self._on_intake_error)
         # Publishers come and go: follow them ('auto'), describe the incompatible ones.
         self._qos_timer = self.create_timer(QOS_CHECK_S, self._check_input_qos)
+        # and at once after an incompatible-QoS event (a best-effort publisher appeared)
+        self._qos_soon = self.create_timer(0.001, self._check_input_qos_now)
+        self._qos_soon.cancel()
         ret = super().on_activate(state)          # enables the lifecycle publishers
         self._active = True
         self._publish_labels()
@@ -226,6 +230,10 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
                 self._intake = Intake(self.context, self._subs, self._on_cloud,
                                       self._on_intake_error)
 
+    def _check_input_qos_now(self) -> None:
+        self._qos_soon.cancel()             # one shot
+        self._check_input_qos()
+
     def _describe_incompatible(self, index: int) -> None:
         """Record topic `index`'s publishers; warn once per kind of incompatible one."""
         topic = self._pipeline.topic_names[index]
@@ -246,8 +254,9 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
     def _on_incompatible_qos(self, index: int, event: Any) -> None:
         """The middleware found a publisher this subscription cannot match (executor)."""
         self._input_qos.on_event(index, event.total_count_change)
-        if self._active:
-            self._describe_incompatible(index)    # both sides' policies, from the graph
+        if self._active and self._qos_soon is not None:
+            # re-checked from a timer: not within the handler of the subscription it replaces
+            self._qos_soon.reset()
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Stop answering: no subscriptions, publishers disabled (the bank stays loaded)."""
@@ -371,9 +380,10 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
                                      self.get_clock().now().to_msg())
 
     def _destroy_subscriptions(self) -> None:
-        if self._qos_timer is not None:
-            self.destroy_timer(self._qos_timer)
-            self._qos_timer = None
+        for timer in (self._qos_timer, self._qos_soon):
+            if timer is not None:
+                self.destroy_timer(timer)
+        self._qos_timer = self._qos_soon = None
         self._stop_intake()                 # first: it waits on the subscriptions
         for sub in self._subs:
             self.destroy_subscription(sub)
