@@ -110,8 +110,20 @@ def test_offline_answers_every_object(bags: dict, tiny_bank: Path, tmp_path: Pat
     bag, objects = bags[name]
     out, table = tmp_path / 'a.json', tmp_path / 'a.csv'
     _run(['replay', str(bag), '--offline', '--bank', str(tiny_bank), '--segment-field',
-          'label', '--json', str(out), '--csv', str(table), '--quiet'])
+          'label', '--json', str(out), '--csv', str(table), '--quiet',
+          '--output-bag', str(tmp_path / 'out_bag')])
     doc = json.loads(out.read_text())
+    from rosbags.rosbag2 import Reader
+
+    from point_gn_ros.pointcloud2 import decode_classifications
+    with Reader(tmp_path / 'out_bag') as reader:
+        store = __import__('point_gn_ros.bag.reader', fromlist=['_typestore'])._typestore()
+        answers = [decode_classifications(store.deserialize_cdr(raw, c.msgtype))
+                   for c, _, raw in reader.messages()
+                   if c.topic == '/point_gn/classifications']
+        inputs = sum(i.msgcount for t, i in reader.topics.items() if t.startswith('/lidar/'))
+    assert inputs == doc['summary']['messages']
+    assert sum(len(a['class_id']) for a in answers) == objects
     assert doc['mode'] == 'offline' and len(doc['answers']) == objects
     assert all(a['stamp_ns'] > 0 and a['label'] and a['frame_id'] == 'velodyne'
                for a in doc['answers'])
@@ -154,6 +166,9 @@ def test_live_answers_every_object_like_offline(bags: dict, tiny_bank: Path, tmp
     offline = json.loads((tmp_path / 'off.json').read_text())
     key = lambda a: (a['stamp_ns'], a['segment'], a['label'])  # noqa: E731
     assert sorted(map(key, live['answers'])) == sorted(map(key, offline['answers']))
+    where = {key(a): a['centroid'] for a in offline['answers']}
+    for a in live['answers']:                    # the object's centroid, input frame, both
+        assert a['centroid'] == pytest.approx(where[key(a)], abs=1e-3)
 
     from rosbags.rosbag2 import Reader
     with Reader(out_bag) as reader:

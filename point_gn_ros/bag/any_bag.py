@@ -60,6 +60,7 @@ class ObjectAnswer:
     score: float
     topk: list[tuple[str, float]] = field(default_factory=list)
     latency_ms: float | None = None   # publish -> answer (live), else None
+    centroid: tuple[float, float, float] = (0.0, 0.0, 0.0)   # input frame
 
 
 @dataclass
@@ -127,7 +128,7 @@ def _rows(m: CloudMessage, segments: list[int], res: Any, class_names: list[str]
             float(res['score'][j]),
             [(_name(class_names, int(c)), float(s))
              for c, s in zip(res['topk_ids'][j], res['topk_scores'][j], strict=True)],
-            latency_ms))
+            latency_ms, tuple(round(float(v), 4) for v in res['centroid'][j])))
     return out
 
 
@@ -165,18 +166,18 @@ def classify_offline(bag: BagClouds, bank: str | None = None, device: str = 'cpu
         except DecodeError as exc:
             rejected[str(exc).split(':')[0]] += 1
             continue
-        rot = up(m.frame_id)
-        kept = [(seg, to_z_up(xyz, rot)) for seg, xyz in parts if len(xyz) >= min_points]
+        kept = [(seg, xyz) for seg, xyz in parts if len(xyz) >= min_points]
         if not kept and not has_field:
             rejected['too few points'] += 1
         objects += [(m, seg, xyz) for seg, xyz in kept]
     answers: list[ObjectAnswer] = []
     for start in range(0, len(objects), BATCH):
         chunk = objects[start:start + BATCH]
-        res = rec.classify_clouds([xyz for _, _, xyz in chunk])
-        for j, (m, seg, _) in enumerate(chunk):
+        res = rec.classify_clouds([to_z_up(xyz, up(m.frame_id)) for m, _, xyz in chunk])
+        for j, (m, seg, xyz) in enumerate(chunk):
             one = {'class_id': [res.labels[j]], 'score': [res.scores[j]],
-                   'topk_ids': [res.topk_ids[j]], 'topk_scores': [res.topk_scores[j]]}
+                   'topk_ids': [res.topk_ids[j]], 'topk_scores': [res.topk_scores[j]],
+                   'centroid': [xyz.mean(axis=0, dtype=np.float64)]}
             answers += _rows(m, [seg], one, names, None)
     return answers, names, dict(rejected)
 
@@ -333,7 +334,7 @@ def _atomic_write(path: Path, text: str) -> None:
 
 
 CSV_COLUMNS = ('stamp_ns', 'topic', 'frame_id', 'segment', 'label', 'class_id', 'score',
-               'topk', 'latency_ms')
+               'topk', 'latency_ms', 'x', 'y', 'z')
 
 
 def write_answers(answers: list[ObjectAnswer], header: dict[str, Any], *,
@@ -353,7 +354,7 @@ def write_answers(answers: list[ObjectAnswer], header: dict[str, Any], *,
         for a in answers:
             w.writerow([a.stamp_ns, a.topic, a.frame_id, a.segment, a.label, a.class_id,
                         f'{a.score:.6f}', ' '.join(f'{n}:{s:.4f}' for n, s in a.topk),
-                        '' if a.latency_ms is None else f'{a.latency_ms:.3f}'])
+                        '' if a.latency_ms is None else f'{a.latency_ms:.3f}', *a.centroid])
         _atomic_write(Path(csv_path), buf.getvalue())
         written.append(Path(csv_path))
     return written

@@ -295,7 +295,7 @@ def _offline_answer_msgs(bag: object, answers: list, names: list[str]) -> list:
         header = Header(frame_id=m.frame_id, stamp=Time(sec=m.stamp_ns // 1_000_000_000,
                                                         nanosec=m.stamp_ns % 1_000_000_000))
         msg = make_classifications(
-            header, np.zeros((len(rows), 3)), [a.class_id for a in rows],
+            header, np.array([a.centroid for a in rows]), [a.class_id for a in rows],
             [a.score for a in rows], [[index.get(n, -1) for n, _ in a.topk] for a in rows],
             [[s for _, s in a.topk] for a in rows], np.array([a.segment for a in rows]),
             bag.topics.index(m.topic))
