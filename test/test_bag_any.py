@@ -166,9 +166,12 @@ def test_live_answers_every_object_like_offline(bags: dict, tiny_bank: Path, tmp
     offline = json.loads((tmp_path / 'off.json').read_text())
     key = lambda a: (a['stamp_ns'], a['segment'], a['label'])  # noqa: E731
     assert sorted(map(key, live['answers'])) == sorted(map(key, offline['answers']))
-    where = {key(a): a['centroid'] for a in offline['answers']}
+    # Clusters of one scan share its stamp: matched to their own message in send order.
+    where = {(a['message'], a['segment']): a for a in offline['answers']}
     for a in live['answers']:                    # the object's centroid, input frame, both
-        assert a['centroid'] == pytest.approx(where[key(a)], abs=1e-3)
+        mine = where[a['message'], a['segment']]
+        assert a['label'] == mine['label']
+        assert a['centroid'] == pytest.approx(mine['centroid'], abs=1e-3)
 
     from rosbags.rosbag2 import Reader
     with Reader(out_bag) as reader:
