@@ -203,3 +203,61 @@ def test_ros2_launch_and_cli_control(colcon_install: Path, small_bank_path: Path
     assert rc == 0, text()
     assert not leftovers, 'the node outlived ros2 launch'
     assert 'Traceback' not in text(), text()
+
+
+def test_launch_arguments_reach_the_node_and_sigterm_stops_it(
+        colcon_install: Path, small_bank_path: Path, tmp_path: Path) -> None:
+    """Launch arguments segment_field, up_axis, unknown_threshold, qos_reliability work.
+
+    Then `kill -TERM` on ros2 launch (which exits without stopping its processes) stops the
+    node as well.
+    """
+    import signal
+    import time
+
+    from node_testing import DOMAIN_ID, require_ros_extras
+    require_ros_extras('launch_ros')
+    require_ros_extras('ros2param')
+
+    name = f'launch_args_{os.getpid()}'           # unique: finds the node's process
+    marker = f'__node:={name}'                    # (launch passes parameters in a file)
+    env = dict(_installed_env(colcon_install), ROS_DOMAIN_ID=str(DOMAIN_ID),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1')
+    log_path = tmp_path / 'launch.log'
+    log = open(log_path, 'wb')  # noqa: SIM115 - closed below
+    launch = subprocess.Popen(
+        ['ros2', 'launch', 'point_gn_ros', 'classifier.launch.py', f'node_name:={name}',
+         f'bank_path:={small_bank_path}', 'input_topics:=[launch_args_objects]',
+         'segment_field:=label',
+         'up_axis:=-z', 'unknown_threshold:=0.25', 'qos_reliability:=best_effort'],
+        stdout=log, stderr=subprocess.STDOUT, env=env)
+
+    def text() -> str:
+        return log_path.read_text(errors='replace')
+
+    expected = ('classifying /launch_args_objects (best_effort, segment field label, up axis '
+                '-z)')
+    try:
+        end = time.monotonic() + 120
+        while expected not in text() and launch.poll() is None and time.monotonic() < end:
+            time.sleep(0.2)
+        assert expected in text(), text()
+        out = subprocess.run(['ros2', 'param', 'get', f'/{name}', 'unknown_threshold',
+                              '--no-daemon', '--spin-time', '5'], env=env, capture_output=True,
+                             text=True, timeout=120)
+        assert '0.25' in out.stdout, out.stdout + out.stderr
+        assert _node_processes_with(marker)
+        launch.send_signal(signal.SIGTERM)
+        launch.wait(30)
+        end = time.monotonic() + 30
+        while _node_processes_with(marker) and time.monotonic() < end:
+            time.sleep(0.2)
+        leftovers = _node_processes_with(marker)
+    finally:
+        if launch.poll() is None:
+            launch.kill()
+            launch.wait(5)
+        log.close()
+        for pid in _node_processes_with(marker):
+            os.kill(pid, signal.SIGKILL)
+    assert not leftovers, 'the node outlived ros2 launch after SIGTERM:\n' + text()

@@ -161,7 +161,7 @@ def test_parameter_validation_and_closest_names() -> None:
 
     values = {name: default for name, (default, _, _) in PARAMETERS.items()}
     s = settings_from_values(values)
-    assert s.qos_reliability == 'reliable' and s.up_axis == 'auto' and s.autostart
+    assert s.qos_reliability == 'auto' and s.up_axis == 'auto' and s.autostart
     with pytest.raises(NodeConfigError, match='up_axis'):
         settings_from_values(values | {'up_axis': 'up'})
     with pytest.raises(NodeConfigError, match='repeats'):

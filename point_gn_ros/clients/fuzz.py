@@ -93,6 +93,13 @@ def _identity(d: dict[str, str]) -> int:
                                                          'failed', 'in_flight'))
 
 
+def default_domain_id() -> int:
+    """ROS_DOMAIN_ID when set (whoever shares the machine chose it), else a random 150-230."""
+    import os
+    value = os.environ.get('ROS_DOMAIN_ID', '').strip()
+    return int(value) if value.isdigit() else random.randint(150, 230)
+
+
 def run_fuzz(count: int = 2000, seed: int = 0, window: int = 8, limits: Limits | None = None,
              domain_id: int | None = None, timeout_s: float = 600.0) -> dict[str, Any]:
     """Publish `count` fuzz cases to a fresh node and check every answer; returns a report.
@@ -106,7 +113,7 @@ def run_fuzz(count: int = 2000, seed: int = 0, window: int = 8, limits: Limits |
     from point_gn_ros.clients.node_client import Client, NodeLauncher
 
     limits = limits or Limits()
-    domain_id = domain_id if domain_id is not None else random.randint(150, 230)
+    domain_id = domain_id if domain_id is not None else default_domain_id()
     work = Path(tempfile.mkdtemp(prefix='point_gn_fuzz_'))
     cases: list[FuzzCase] = list(generate(seed, count, limits))
     bank = synthetic_bank(work / 'fuzz_bank.npz')

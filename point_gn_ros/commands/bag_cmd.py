@@ -54,12 +54,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.add_argument('--topic', default=None, help='cloud topic (default: auto)')
     i.set_defaults(func=_info)
 
+    pl = actions.add_parser(
+        'play', help="publish a bag's topics at the recorded rate (no ros2 bag needed)",
+        description="Publish a rosbag2 bag's messages (raw, as recorded) on their topics, "
+                    'paced by the recorded times; ROS_DOMAIN_ID from the environment.')
+    pl.add_argument('bag', metavar='BAG', help='bag directory (or .mcap / .db3 file)')
+    pl.add_argument('--rate', type=float, default=1.0, metavar='R',
+                    help='R x the recorded rate (default 1)')
+    pl.add_argument('--loop', action='store_true', help='start again at the end (Ctrl-C stops)')
+    pl.add_argument('--topics', nargs='+', default=None, metavar='TOPIC',
+                    help='only these topics (default: all)')
+    pl.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
+                    help='before playing, wait up to S s until every topic has a subscriber '
+                         '(default 0: a 1 s pause only)')
+    pl.set_defaults(func=_play)
+
     r = sub.add_parser(
         'replay', help='replay a ground-truth bag through the classifier node and report',
         description="Publish the bag's clouds to the running classifier node (or only listen, "
                     'or classify offline), match its answers by header stamp and report '
                     'accuracy, delivery and latency.')
-    r.add_argument('bag', metavar='BAG', help='bag written by `point_gn bag write`')
+    r.add_argument('bag', metavar='BAG',
+                   help='any rosbag2 bag (mcap or sqlite3) of PointCloud2 messages; a bag '
+                        'written by `point_gn bag write` (ground truth) gets the accuracy '
+                        'report')
     how = r.add_mutually_exclusive_group()
     how.add_argument('--offline', action='store_true',
                      help='no ROS graph: classify with the core library (same report)')
@@ -70,7 +88,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                           '(or --timeout passes)')
     how.add_argument('--rate', type=float, default=1.0, metavar='R',
                    help='publish at R x the recorded rate (default 1)')
-    r.add_argument('--topic', default=None, help='cloud topic in the bag (default: auto)')
+    r.add_argument('--topic', action='append', default=None, metavar='TOPIC',
+                   help='cloud topic in the bag, repeatable (default: every PointCloud2 topic; '
+                        'a ground-truth bag: its cloud topic)')
+    r.add_argument('--csv', default=None, metavar='ANSWERS.csv',
+                   help='bag without ground truth: one row per object (stamp, topic, frame, '
+                        'segment, label, score, top-k, latency)')
+    r.add_argument('--output-bag', default=None, metavar='OUT_BAG',
+                   help='bag without ground truth: write the input clouds and the answers '
+                        '(~/classifications PointCloud2; live, with vision_msgs: also '
+                        '~/detections Detection3DArray) to a new bag')
+    r.add_argument('--segment-field', default='', metavar='FIELD',
+                   help='offline: the node parameter segment_field (default none: a message '
+                        'is one object)')
+    r.add_argument('--up-axis', default='auto',
+                   choices=('auto', 'z', '-z', 'y', '-y', 'x', '-x'),
+                   help='offline: the node parameter up_axis (default auto)')
     r.add_argument('--node-name', default=None, metavar='NAME',
                    help='classifier node name (answers on /NAME/classifications; default: the '
                         'node subscribed to the cloud topic)')
@@ -91,7 +124,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='exit 1 unless at least this share (0-1) of the sent messages is '
                         'answered (default 0: exit 1 only when nothing is); duplicate '
                         'answers also exit 1')
-    r.add_argument('--json', default=None, metavar='REPORT.json', help='write the JSON report')
+    r.add_argument('--json', default=None, metavar='REPORT.json',
+                   help='write the JSON report (without ground truth: every answer)')
     r.add_argument('--markdown', default=None, metavar='REPORT.md',
                    help='write the Markdown report')
     r.add_argument('--png', default=None, metavar='PREFIX',
@@ -119,13 +153,34 @@ def _write(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
+    from point_gn_ros.bag.errors import NoGroundTruthError
     from point_gn_ros.bag.reader import read_bag
 
-    contents = read_bag(args.bag, args.topic)
+    try:
+        contents = read_bag(args.bag, args.topic)
+    except NoGroundTruthError as exc:
+        from collections import Counter
+
+        from point_gn_ros.bag.any_bag import read_clouds
+        bag = read_clouds(args.bag, [args.topic] if args.topic else None)
+        per_topic = Counter(m.topic for m in bag.messages)
+        print(f'{bag.path} ({bag.storage}): no ground truth ({exc}); PointCloud2 messages: '
+              + ', '.join(f'{t} {n}' for t, n in sorted(per_topic.items())))
+        return 0
     print(contents.summary())
     for key, value in sorted(contents.custom.items()):
         if not key.endswith('class_names'):
             print(f'  {key}: {value}')
+    return 0
+
+
+def _play(args: argparse.Namespace) -> int:
+    from point_gn_ros.bag.play import play
+
+    sent = play(args.bag, args.topics, args.rate, args.loop,
+                log=lambda text: print(f'[bag play] {text}', file=sys.stderr, flush=True),
+                wait_subscribers_s=args.wait_for_subscribers)
+    print(f'published {sent} message(s)')
     return 0
 
 
@@ -136,7 +191,19 @@ def _replay(args: argparse.Namespace) -> int:
     if not 0.0 <= args.min_answered <= 1.0:
         from point_gn_ros.bag.errors import ReplayError
         raise ReplayError(f'--min-answered must be a share in [0, 1], got {args.min_answered:g}')
-    contents = read_bag(args.bag, args.topic, keep_clouds=args.offline)
+    from point_gn_ros.bag.errors import NoGroundTruthError
+
+    topics = args.topic or []
+    try:
+        if len(topics) > 1:
+            raise NoGroundTruthError('several topics: answers only')
+        contents = read_bag(args.bag, topics[0] if topics else None,
+                            keep_clouds=args.offline)
+    except NoGroundTruthError:
+        return _replay_answers(args)
+    if args.csv or args.output_bag:
+        print('point_gn: replay: --csv and --output-bag are for bags without ground truth; '
+              'ignored', file=sys.stderr)
     if args.offline:
         from point_gn_ros.bag.offline import run_offline
         result = run_offline(contents, args.bank, args.device, args.unknown_threshold,
@@ -158,6 +225,82 @@ def _replay(args: argparse.Namespace) -> int:
     for problem in problems:
         print(f'point_gn: replay: {problem}', file=sys.stderr)
     return 1 if problems else 0
+
+
+def _replay_answers(args: argparse.Namespace) -> int:
+    """A bag without ground truth: classify every cloud, write and summarise the answers."""
+    from point_gn_ros.bag.any_bag import (CLASSIFICATIONS_TOPIC, classify_live,
+                                          classify_offline, format_summary, read_clouds,
+                                          summarise, write_answers, write_output_bag)
+
+    bag = read_clouds(args.bag, args.topic)
+    header: dict = {'bag': str(bag.path), 'storage': bag.storage, 'topics': bag.topics}
+    if args.offline:
+        answers, names, rejected = classify_offline(
+            bag, args.bank, args.device, args.unknown_threshold, args.min_points,
+            args.segment_field, up_axis=args.up_axis)
+        answered = len({a.message for a in answers})
+        header |= {'mode': 'offline', 'rejected': rejected}
+        answer_msgs = _offline_answer_msgs(bag, answers, names) if args.output_bag else []
+        answers_topic = CLASSIFICATIONS_TOPIC
+        detections = []
+    else:
+        if args.listen_only or args.lockstep:
+            print('point_gn: replay: a bag without ground truth is sent at --rate; '
+                  '--listen-only / --lockstep apply to ground-truth bags', file=sys.stderr)
+        answers, names, info = classify_live(
+            bag, args.node_name, args.rate, args.timeout, args.discovery_timeout,
+            log=lambda text: print(f'[replay] {text}', file=sys.stderr, flush=True))
+        answered = info['answered']
+        header |= {'mode': 'live', 'node': info['node'], 'sent': info['sent'],
+                   'unmatched_answers': info['unmatched_answers']}
+        from rclpy.serialization import serialize_message
+        answer_msgs = [(serialize_message(m), log_ns) for m, log_ns in info['answer_messages']]
+        answers_topic = (info['node'] or '/point_gn') + '/classifications'
+        detections = info['detections']
+    summary = summarise(answers, len(bag.messages), answered)
+    header |= {'class_names': names, 'summary': summary}
+    write_answers(answers, header, json_path=args.json, csv_path=args.csv)
+    if args.output_bag:
+        write_output_bag(bag, args.output_bag, answer_msgs, answers_topic,
+                         'sqlite3' if bag.storage == 'sqlite3' else 'mcap', detections,
+                         answers_topic.rsplit('/', 1)[0] + '/detections')
+    if not args.quiet:
+        print(format_summary(summary))
+    if bag.messages and answered == 0:
+        print(f'point_gn: replay: answered 0 of {len(bag.messages)} message(s)', file=sys.stderr)
+        return 1
+    return 0
+
+
+def _offline_answer_msgs(bag: object, answers: list, names: list[str]) -> list:
+    """Offline answers as ~/classifications CDR, logged at their input message's time."""
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Header
+    from builtin_interfaces.msg import Time
+
+    import numpy as np
+
+    from point_gn_ros.pointcloud2 import make_classifications
+
+    by_msg: dict[int, list] = {}
+    for a in answers:
+        by_msg.setdefault(a.message, []).append(a)
+    out = []
+    for m in bag.messages:
+        rows = by_msg.get(m.index)
+        if not rows:
+            continue
+        index = {n: i for i, n in enumerate(names)}
+        header = Header(frame_id=m.frame_id, stamp=Time(sec=m.stamp_ns // 1_000_000_000,
+                                                        nanosec=m.stamp_ns % 1_000_000_000))
+        msg = make_classifications(
+            header, np.array([a.centroid for a in rows]), [a.class_id for a in rows],
+            [a.score for a in rows], [[index.get(n, -1) for n, _ in a.topk] for a in rows],
+            [[s for _, s in a.topk] for a in rows], np.array([a.segment for a in rows]),
+            bag.topics.index(m.topic))
+        out.append((serialize_message(msg), m.log_ns))
+    return out
 
 
 def replay_problems(report: dict, min_answered: float = 0.0) -> list[str]:

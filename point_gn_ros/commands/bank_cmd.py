@@ -101,6 +101,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'dims chosen by CV among 512 and 640, which fit 20 MB with the head)')
     b.set_defaults(func=_build)
 
+    pa = bsub.add_parser('path', help="print the shipped bank's path ('default' as BANK)")
+    pa.set_defaults(func=lambda args: print(_default_path()) or 0)
+
     i = bsub.add_parser('info', help='print a bank summary')
     i.add_argument('bank', metavar='BANK', help='bank file (.npz)')
     i.add_argument('--json', action='store_true', help='print the metadata as JSON')
@@ -294,10 +297,16 @@ def describe_selection(meta: dict) -> list[str]:
     return lines
 
 
+def _default_path() -> Path:
+    from point_gn_ros.bank.store import default_bank_path
+    return default_bank_path()
+
+
 def _info(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.store import FeatureBank
 
-    bank = FeatureBank.load(args.bank)
+    from point_gn_ros.commands.enroll_cmd import resolve_bank
+    bank = FeatureBank.load(resolve_bank(args.bank))
     if args.json:
         print(json.dumps(bank.meta, indent=2, sort_keys=True))
         return 0

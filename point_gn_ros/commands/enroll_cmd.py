@@ -21,7 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     a = bsub.add_parser('add', help='encode point files (or one class of a dataset) and add '
                                     'them to a bank under a class, new or existing')
-    a.add_argument('bank', metavar='BANK', help='bank file (.npz) to extend')
+    a.add_argument('bank', metavar='BANK',
+                   help="bank file (.npz) to extend; 'default' = the shipped bank (then -o)")
     a.add_argument('inputs', metavar='DATASET_OR_FILES', nargs='+',
                    help='point files (.pcd .ply .npy .txt .xyz .csv) and/or folders of them; '
                         'or one dataset (h5 folder/file, class-per-folder tree), of which the '
@@ -69,6 +70,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     h = bsub.add_parser('history', help='bank version, per-class counts and every enrollment')
     h.add_argument('bank', metavar='BANK', help='bank file (.npz)')
     h.set_defaults(func=_history)
+
+
+def resolve_bank(name: str, output: str | None = '') -> Path:
+    """BANK as given, or the shipped bank for 'default' (a change then needs -o OUT).
+
+    output: '' when the bank is only read; None when a change would rewrite it in place.
+    """
+    from point_gn_ros.bank.store import default_bank_path
+    from point_gn_ros.errors import BankError
+
+    if name != 'default' or Path(name).exists():
+        return Path(name)
+    if output is None:
+        raise BankError("'default' is the shipped bank, which is not rewritten: give -o "
+                        'OUT.npz for the changed copy')
+    return default_bank_path()
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -183,7 +200,7 @@ def _add(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.enroll import BankFile, EnrollError, add_examples
     from point_gn_ros.recognizer import encode_clouds, make_encoder
 
-    bf = BankFile.load(args.bank)
+    bf = BankFile.load(resolve_bank(args.bank, args.output))
     clouds, source = _read_inputs(args)
     if args.up != 'z':      # the bank's frame is z up, as `classify --up` and the node's up_axis
         clouds = [to_z_up(c, args.up) for c in clouds]
@@ -208,8 +225,8 @@ def _add(args: argparse.Namespace) -> int:
 def _remove(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.enroll import BankFile, remove_class
 
-    res = remove_class(BankFile.load(args.bank), args.class_name, source='point_gn bank remove',
-                       policy=_policy(args))
+    res = remove_class(BankFile.load(resolve_bank(args.bank, args.output)), args.class_name,
+                       source='point_gn bank remove', policy=_policy(args))
     return _write(args, res)
 
 
@@ -217,7 +234,7 @@ def _history(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.enroll import bank_version, class_counts
     from point_gn_ros.bank.store import FeatureBank
 
-    bank = FeatureBank.load(args.bank)
+    bank = FeatureBank.load(resolve_bank(args.bank))
     print(f'{bank.path}: bank version {bank_version(bank)}, {len(bank)} entries, '
           f'{bank.num_classes} classes')
     print('  ' + ', '.join(f'{c} {n}' for c, n in class_counts(bank).items()))

@@ -42,6 +42,8 @@ from typing import Any
 
 import rclpy
 from rclpy.exceptions import ParameterException
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, ManagedEntity, TransitionCallbackReturn
 import rclpy.logging
@@ -55,9 +57,11 @@ from point_gn_ros.node.diagnostics import DiagnosticsBuilder
 from point_gn_ros.node.diagnostics_mixin import DiagnosticsMixin
 from point_gn_ros.node.frames import UpConvention
 from point_gn_ros.node.gc_pauses import freeze_startup_objects, thaw
+from point_gn_ros.node.input_qos import BEST_EFFORT, RELIABLE, InputQoS
 from point_gn_ros.node.intake import Intake, NotForExecutors
 from point_gn_ros.node.outputs import Outputs, vision_msgs_available
 from point_gn_ros.node.parameter_mixin import ParameterMixin
+from point_gn_ros.node.parent_death import exit_with_parent
 from point_gn_ros.node.params import (PARAMETERS, NodeConfigError, Settings,
                                       resolve_unknown_threshold, settings_from_values)
 from point_gn_ros.node.pipeline import Answer, Pipeline
@@ -71,6 +75,8 @@ NODE_NAME = 'point_gn_classifier'
 WARN_PERIOD_S = 5.0
 # How long shutdown waits for the worker to finish the batch it is classifying.
 WORKER_JOIN_TIMEOUT_S = 10.0
+# How often the input topics' publishers are checked (QoS 'auto', incompatible QoS), s.
+QOS_CHECK_S = 0.5
 # Counted when a message taken before deactivate is finished while inactive (not published).
 REJECT_INACTIVE = 'node inactive'
 
@@ -106,6 +112,9 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         self._active = False
         self._setting_class_names = False
         self._subs: list[Any] = []
+        self._input_qos: InputQoS | None = None
+        self._qos_timer: Any = None
+        self._qos_soon: Any = None
         self._intake: Intake | None = None
         self._pipeline: Pipeline | None = None
         self._worker: threading.Thread | None = None
@@ -146,32 +155,108 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Subscribe to the input topics and enable the publishers."""
         s = self.settings
-        in_qos = QoSProfile(
-            depth=s.qos_depth, history=HistoryPolicy.KEEP_LAST,
-            reliability=(ReliabilityPolicy.BEST_EFFORT if s.qos_reliability == 'best_effort'
-                         else ReliabilityPolicy.RELIABLE),
-            durability=DurabilityPolicy.VOLATILE)
-        # Taken by the intake thread, not the executor (node/intake.py: the executor's cost
-        # per message starved the worker under bursts). The callback is the same enqueue, so
-        # an executor that ignored callback groups would still count and queue each message.
-        group = NotForExecutors()
-        self._subs = [self.create_subscription(PointCloud2, topic,
-                                               lambda msg, i=i: self._on_cloud(i, msg), in_qos,
-                                               callback_group=group)
-                      for i, topic in enumerate(s.input_topics)]
+        self._input_qos = InputQoS([s.topic(i).qos_reliability
+                                    for i in range(len(s.input_topics))])
+        self._subs = []
+        for i, topic in enumerate(s.input_topics):
+            reliability = self._input_qos.choose(i, self.get_publishers_info_by_topic(topic))
+            self._subs.append(self._subscribe(i, reliability or RELIABLE))
         self._pipeline.topic_names = [sub.topic_name or topic
                                       for sub, topic in zip(self._subs, s.input_topics,
                                                             strict=True)]
         self._watchdog = InputWatchdog(len(self._subs))
         self._intake = Intake(self.context, self._subs, self._on_cloud, self._on_intake_error)
+        # Publishers come and go: follow them ('auto'), describe the incompatible ones.
+        self._qos_timer = self.create_timer(QOS_CHECK_S, self._check_input_qos)
+        # and at once after an incompatible-QoS event (a best-effort publisher appeared)
+        self._qos_soon = self.create_timer(0.001, self._check_input_qos_now)
+        self._qos_soon.cancel()
         ret = super().on_activate(state)          # enables the lifecycle publishers
         self._active = True
         self._publish_labels()
-        self.get_logger().info(
-            f"classifying {', '.join(self._pipeline.topic_names)} ({s.qos_reliability}, "
-            f"depth {s.qos_depth}, segment field {s.segment_field or 'none'}, up axis "
-            f"{s.up_axis}) -> {', '.join(self._outputs.topic_names())}")
+        inputs = ', '.join(
+            f'{name} ({self._describe_input(i)})'
+            for i, name in enumerate(self._pipeline.topic_names))
+        self.get_logger().info(f'classifying {inputs}, depth {s.qos_depth} -> '
+                               f"{', '.join(self._outputs.topic_names())}")
         return ret
+
+    def _describe_input(self, index: int) -> str:
+        t = self.settings.topic(index)
+        chosen = self._input_qos.topics[index].reliability
+        qos = f'auto: {chosen}' if t.qos_reliability == 'auto' else chosen
+        return f'{qos}, segment field {t.segment_field or "none"}, up axis {t.up_axis}'
+
+    def _subscribe(self, index: int, reliability: str, again: bool = False) -> Any:
+        """Input topic `index`'s subscription with `reliability`, taken by the intake thread.
+
+        Taken by the intake thread, not the executor (node/intake.py: the executor's cost
+        per message starved the worker under bursts). The callback is the same enqueue, so
+        an executor that ignored callback groups would still count and queue each message.
+        Its incompatible-QoS events run on the executor (a group of their own).
+        """
+        s = self.settings
+        qos = QoSProfile(
+            depth=s.qos_depth, history=HistoryPolicy.KEEP_LAST,
+            reliability=(ReliabilityPolicy.BEST_EFFORT if reliability == BEST_EFFORT
+                         else ReliabilityPolicy.RELIABLE),
+            durability=DurabilityPolicy.VOLATILE)
+        sub = self.create_subscription(
+            PointCloud2, s.input_topics[index], lambda msg, i=index: self._on_cloud(i, msg),
+            qos, callback_group=NotForExecutors(),
+            event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
+        handlers = SubscriptionEventCallbacks(
+            incompatible_qos=lambda event, i=index: self._on_incompatible_qos(i, event),
+            use_default_callbacks=False).create_event_handlers(
+                MutuallyExclusiveCallbackGroup(), sub.handle, sub.topic_name)
+        for handler in handlers:
+            sub.event_handlers.append(handler)     # destroyed with the subscription
+            self.add_waitable(handler)
+        self._input_qos.subscribed(index, reliability, again)
+        return sub
+
+    def _check_input_qos(self) -> None:
+        """Timer: follow each 'auto' topic's publishers; warn once per incompatible kind."""
+        if not self._active:
+            return
+        try:
+            for i, topic in enumerate(self._pipeline.topic_names):
+                wanted = self._input_qos.choose(i, self.get_publishers_info_by_topic(topic))
+                if wanted is not None:
+                    self._resubscribe(i, wanted)
+                self._describe_incompatible(i)
+        finally:
+            if self._intake is None:           # stopped by a re-subscription
+                self._intake = Intake(self.context, self._subs, self._on_cloud,
+                                      self._on_intake_error)
+
+    def _check_input_qos_now(self) -> None:
+        self._qos_soon.cancel()             # one shot
+        self._check_input_qos()
+
+    def _describe_incompatible(self, index: int) -> None:
+        """Record topic `index`'s publishers; warn once per kind of incompatible one."""
+        topic = self._pipeline.topic_names[index]
+        for text in self._input_qos.observe(index, self.get_publishers_info_by_topic(topic)):
+            self.get_logger().warning(
+                f'input {topic}: a publisher offers incompatible QoS ({text}): none of its '
+                "messages arrive; set qos_reliability to 'auto' or 'best_effort', or make the "
+                'publisher reliable')
+
+    def _resubscribe(self, index: int, reliability: str) -> None:
+        """Re-create input `index`'s subscription (the queue, stats and worker go on)."""
+        self._stop_intake()                 # it waits on the subscription being replaced
+        self.destroy_subscription(self._subs[index])
+        self._subs[index] = self._subscribe(index, reliability, again=True)
+        self.get_logger().info(f'input {self._pipeline.topic_names[index]}: publishers '
+                               f'changed, subscribed again with {reliability}')
+
+    def _on_incompatible_qos(self, index: int, event: Any) -> None:
+        """The middleware found a publisher this subscription cannot match (executor)."""
+        self._input_qos.on_event(index, event.total_count_change)
+        if self._active and self._qos_soon is not None:
+            # re-checked from a timer: not within the handler of the subscription it replaces
+            self._qos_soon.reset()
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Stop answering: no subscriptions, publishers disabled (the bank stays loaded)."""
@@ -201,7 +286,7 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         return super().on_error(state)
 
     def _configure(self) -> None:
-        s = self.settings = settings_from_values(self._values())
+        s = self.settings = settings_from_values(self._values(), self._topic_values())
         self._configure_torch()
         t0 = time.perf_counter()
         recognizer = self._make_recognizer()
@@ -230,6 +315,9 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         self._pipeline = Pipeline(self.recognizer, s, self._stats, self._warn, self._stop)
         # A tf2 lookup (input frame -> gravity-aligned frame) can replace the convention here.
         self._pipeline.frame_rotation = UpConvention(s.up_axis)
+        self._pipeline.topic_rotations = {i: UpConvention(s.topic(i).up_axis)
+                                          for i in range(len(s.input_topics))
+                                          if s.topic(i).up_axis != s.up_axis}
         self._worker = threading.Thread(
             target=self._pipeline.serve, args=(self._queue, self._publish, self.context.ok),
             name='point_gn_worker', daemon=True)
@@ -292,6 +380,10 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
                                      self.get_clock().now().to_msg())
 
     def _destroy_subscriptions(self) -> None:
+        for timer in (self._qos_timer, self._qos_soon):
+            if timer is not None:
+                self.destroy_timer(timer)
+        self._qos_timer = self._qos_soon = None
         self._stop_intake()                 # first: it waits on the subscriptions
         for sub in self._subs:
             self.destroy_subscription(sub)
@@ -385,7 +477,8 @@ def autostart(node: ClassifierNode) -> None:
 def main(args: list[str] | None = None) -> int:
     """Entry point (console script ``classifier_node``); returns the exit code."""
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    rclpy.init(args=args)
+    rclpy.init(args=args)               # its signal handlers: SIGINT and SIGTERM shut down
+    exit_with_parent()                  # under ros2 launch: stop when launch is killed
     node: ClassifierNode | None = None
     code = 0
     try:

@@ -28,11 +28,13 @@ class DiagnosticsBuilder:
     def build(self, name: str, snap: StatsSnapshot, settings: Settings,
               topic_names: Sequence[str], worker_alive: bool, bank: Any,
               unknown_threshold: float | None, input_problems: Sequence[str] = (),
-              state: str = 'active') -> DiagnosticArray:
+              state: str = 'active', input_values: Sequence[dict[str, Any]] = ()
+              ) -> DiagnosticArray:
         """DiagnosticArray (header unset) for node `name` (fully qualified).
 
         input_problems: per topic '' or why it is suspicious (no publisher / no message for
-        a while: WARN); state: the lifecycle state, reported as is.
+        a while, publishers with incompatible QoS: WARN); state: the lifecycle state, reported
+        as is; input_values: per topic extra key-values (its QoS: node/input_qos.py).
         """
         input_problems = list(input_problems) or [''] * len(topic_names)
         s = settings
@@ -87,6 +89,9 @@ class DiagnosticsBuilder:
             'skipped_segments': snap.skipped_segments,
             'objects_truncated': snap.objects_truncated,
             'errors': snap.errors,
+            'numeric_warnings': snap.numeric_warnings,
+            'incompatible_qos_events': sum(int(v.get('incompatible_qos_events', 0))
+                                           for v in input_values),
         })
         statuses = [pipeline]
         for i, topic in enumerate(topic_names):
@@ -98,7 +103,8 @@ class DiagnosticsBuilder:
             st.values = key_values({
                 'topic_index': i, 'input_rate_hz': f'{snap.per_topic_input_hz[i]:.2f}',
                 'received': snap.received[i], 'processed': snap.processed[i],
-                'dropped': snap.dropped[i], 'queue_depth': snap.queue_depths[i]})
+                'dropped': snap.dropped[i], 'queue_depth': snap.queue_depths[i],
+                **(input_values[i] if i < len(input_values) else {})})
             statuses.append(st)
         bank_status = DiagnosticStatus(level=DiagnosticStatus.OK, name=f'{name}: bank',
                                        message=bank.summary(), hardware_id=s.device)

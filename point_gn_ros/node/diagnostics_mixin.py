@@ -20,12 +20,28 @@ class DiagnosticsMixin:
         self._diagnostic_sources.append(source)
 
     def _input_problems(self) -> list[str]:
-        """Per input topic: '' or why it is suspicious (no publisher / no message for N s)."""
+        """Per input topic: '' or why it is suspicious.
+
+        No publisher / no message for N s, or publishers whose QoS it cannot match.
+        """
         if not self._active:
             return []
-        return self._watchdog.problems([sub.topic_name for sub in self._subs],
-                                       [sub.get_publisher_count() for sub in self._subs],
-                                       self.settings.input_timeout_s)
+        # Every publisher on the graph, matched or not: one with incompatible QoS is a
+        # publisher, reported as such, never as "no publisher".
+        topics = self._pipeline.topic_names
+        silent = self._watchdog.problems(topics, [self.count_publishers(t) for t in topics],
+                                         self.settings.input_timeout_s)
+        out = []
+        for i, problem in enumerate(silent):
+            qos = self._input_qos.problem(i)
+            out.append(qos if qos and (not problem or problem.startswith('no message'))
+                       else problem)
+        return out
+
+    def _input_values(self) -> list[dict[str, Any]]:
+        if not self._active or self._input_qos is None:
+            return []
+        return [self._input_qos.values(i) for i in range(len(self._subs))]
 
     def _publish_diagnostics(self) -> None:
         if self._pipeline is None:
@@ -35,7 +51,7 @@ class DiagnosticsMixin:
             self.get_fully_qualified_name(), snap, self.settings, self._pipeline.topic_names,
             self._worker is not None and self._worker.is_alive(), self.recognizer.bank,
             self.recognizer.classifier.unknown_threshold, self._input_problems(),
-            'active' if self._active else 'inactive')
+            'active' if self._active else 'inactive', self._input_values())
         arr.status += [source(self.get_fully_qualified_name())
                        for source in self._diagnostic_sources]
         arr.header.stamp = self.get_clock().now().to_msg()

@@ -11,10 +11,12 @@ import dataclasses
 from typing import Any
 
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType, SetParametersResult
+from rclpy.exceptions import ParameterNotDeclaredException
 from rclpy.parameter import Parameter
 
-from point_gn_ros.node.params import (LIVE, PARAMETERS, NodeConfigError, descriptors,
-                                      resolve_unknown_threshold, unknown_override_warnings)
+from point_gn_ros.node.params import (LIVE, PARAMETERS, TOPIC_PREFIX, NodeConfigError,
+                                      closest_parameter, descriptors, resolve_unknown_threshold,
+                                      unknown_override_warnings)
 
 __all__ = ['ParameterMixin']
 
@@ -29,6 +31,18 @@ class ParameterMixin:
     def _declare_parameters(self) -> None:
         for name, (default, desc) in descriptors().items():
             self.declare_parameter(name, default, desc)
+        # Per-topic settings (params.topic_settings) exist only where given: each override
+        # named topics.<key>.<setting> is declared as given, checked at configure.
+        for name, param in self._parameter_overrides.items():
+            if name.startswith(TOPIC_PREFIX) and not self.has_parameter(name):
+                self.declare_parameter(name, param.value, ParameterDescriptor(
+                    description='Per-input-topic setting (docs/NODE.md, "Per-topic '
+                                'settings").', read_only=True, dynamic_typing=True))
+
+    def _topic_values(self) -> dict[str, Any]:
+        """The declared topics.<key>.<setting> parameters: name -> value."""
+        return {name: p.value for name, p in self._parameters.items()
+                if name.startswith(TOPIC_PREFIX)}
 
     def _warn_unknown_overrides(self) -> None:
         """Misspelt overrides, warned once the extensions have declared their parameters."""
@@ -38,6 +52,21 @@ class ParameterMixin:
 
     def _values(self) -> dict[str, Any]:
         return {name: self.get_parameter(name).value for name in PARAMETERS}
+
+    def _check_undeclared_parameters(self, parameter_list: list[Parameter]) -> None:
+        """The check of rclpy, naming the undeclared parameter and the closest declared one.
+
+        rclpy raises it with an empty list (`Invalid access to undeclared parameter(s): []`),
+        which is what `ros2 param set` showed for a misspelt name.
+        """
+        try:
+            super()._check_undeclared_parameters(parameter_list)
+        except ParameterNotDeclaredException:
+            names = [p.name for p in parameter_list if not self.has_parameter(p.name)]
+            hints = [closest_parameter(n, self._parameters) for n in names]
+            raise ParameterNotDeclaredException(
+                [f"'{n}'" + (f" (did you mean '{h}'?)" if h else '')
+                 for n, h in zip(names, hints, strict=True)]) from None
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         """Validate and apply live parameter changes; refuse what cannot change now."""

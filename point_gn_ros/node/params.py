@@ -21,6 +21,48 @@ class NodeConfigError(PointGNError):
 
 
 @dataclass(frozen=True)
+class TopicSettings:
+    """What may differ between input topics (`topics.<key>.<name>` parameters)."""
+
+    segment_field: str
+    up_axis: str
+    qos_reliability: str
+
+
+@dataclass(frozen=True)
+class NoSegment:
+    """Segment ids that mark unsegmented points (`no_segment_ids`), never an object.
+
+    negative: every id < 0; type_max: the largest value of an unsigned field's type (255,
+    65535, 0xFFFFFFFF: PCL's and many pipelines' "no label"); ids: any other listed id.
+    """
+
+    negative: bool = True
+    type_max: bool = True
+    ids: frozenset[int] = frozenset()
+
+    @classmethod
+    def parse(cls, entries: Any) -> NoSegment:
+        """From the parameter's strings: 'negative', 'max' or integers. NodeConfigError."""
+        negative = type_max = False
+        ids = set()
+        for entry in entries:
+            text = str(entry).strip().lower()
+            if text == 'negative':
+                negative = True
+            elif text == 'max':
+                type_max = True
+            else:
+                try:
+                    ids.add(int(text, 0))
+                except ValueError:
+                    raise NodeConfigError(
+                        f"parameter no_segment_ids: {entry!r} is not 'negative', 'max' or an "
+                        'integer id') from None
+        return cls(negative, type_max, frozenset(ids))
+
+
+@dataclass(frozen=True)
 class Settings:
     """Validated parameter values; the LIVE ones may be replaced while the node runs."""
 
@@ -47,6 +89,19 @@ class Settings:
     autostart: bool = True
     search: str = 'auto'
     object_test: bool = True
+    no_segment_ids: tuple[str, ...] = ('negative', 'max')
+    # One per input topic (same order): its own segment field, up axis and QoS.
+    topics: tuple[TopicSettings, ...] = ()
+
+    def topic(self, index: int) -> TopicSettings:
+        """Input topic `index`'s settings: its `topics.<key>.*` overrides, else the node's."""
+        if self.topics:
+            return self.topics[index]
+        return TopicSettings(self.segment_field, self.up_axis, self.qos_reliability)
+
+    @property
+    def unsegmented(self) -> NoSegment:
+        return NoSegment.parse(self.no_segment_ids)
 
 
 def _int_range(lo: int, hi: int) -> list[IntegerRange]:
@@ -66,7 +121,13 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     'input_topics': (['segmented_objects'],
                      'sensor_msgs/PointCloud2 topics to classify (all share one worker).', {}),
     'segment_field': ('', "'' = each message is one object; else the integer point field that "
-                          'splits a message into objects (negative ids are ignored).', {}),
+                          'splits a message into objects (ids in no_segment_ids are '
+                          'unsegmented points). Per topic: topics.<key>.segment_field.', {}),
+    'no_segment_ids': (['negative', 'max'],
+                       "Segment ids that mean 'no segment' (points left out, never an object): "
+                       "'negative' (every id < 0), 'max' (the largest value of an unsigned "
+                       "field's type: 255, 65535, 0xFFFFFFFF) and/or integer ids as strings "
+                       "('0' for a background label).", {}),
     'min_points': (16, 'Objects (or segments) with fewer finite points are rejected.',
                    {'integer_range': _int_range(1, 1_000_000)}),
     # The two limits bound one message's service time (docs/NODE.md, "Limits").
@@ -94,10 +155,13 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                        'more a second than 8 (the classifier reads its bank once a batch), '
                        'each about twice as late.',
                    {'integer_range': _int_range(1, 10_000)}),
-    'qos_reliability': ('reliable', "Input QoS reliability: 'reliable' (no object lost in "
-                                    "transport) or 'best_effort' (objects > ~600 KB can be "
-                                    'lost to fragmentation; docs/NODE.md).',
-                        {'additional_constraints': "one of 'best_effort', 'reliable'"}),
+    'qos_reliability': ('auto', "Input QoS reliability: 'auto' (match the publishers found on "
+                                "each topic, re-checked as they come and go: best_effort if any "
+                                "is best effort, else reliable), 'reliable' (no object lost in "
+                                "transport) or 'best_effort' (objects > ~600 KB can be lost to "
+                                'fragmentation; docs/NODE.md). Per topic: '
+                                'topics.<key>.qos_reliability.',
+                        {'additional_constraints': "one of 'auto', 'best_effort', 'reliable'"}),
     'qos_depth': (20, 'Input (and output) QoS history depth: what DDS holds for the node '
                       'while its intake thread is not scheduled; the counted dropping is '
                       "queue_size's.",
@@ -112,7 +176,8 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                         {'integer_range': _int_range(1, 256)}),
     'up_axis': ('auto', "Which axis of the input frame points up; objects are turned z-up "
                         "before classification. 'auto' = -y for frames named *_optical_frame "
-                        "(REP 103), else z; or one of z, -z, y, -y, x, -x for every frame.",
+                        "(REP 103), else z; or one of z, -z, y, -y, x, -x for every frame. "
+                        'Per topic: topics.<key>.up_axis.',
                 {'additional_constraints': "one of 'auto', 'z', '-z', 'y', '-y', 'x', '-x'"}),
     'input_timeout_s': (10.0, 'Diagnostics go WARN when an input topic has had no publisher or '
                               'no message for this long (s); 0 = never.',
@@ -132,20 +197,69 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                         'plain node; false = wait for a lifecycle manager.', {}),
 }
 
+QOS_CHOICES = ('auto', 'reliable', 'best_effort')
+# Per-topic parameters: topics.<key>.<name>, <key> = the input_topics entry without its
+# leading '/', each further '/' written '.' (topics.lidar.clusters.segment_field).
+TOPIC_PREFIX = 'topics.'
+TOPIC_PARAMETERS = ('segment_field', 'up_axis', 'qos_reliability')
+
 # Parameters that take effect while the node runs (validated, applied between batches).
 LIVE = frozenset({'top_k', 'unknown_threshold', 'queue_size', 'marker_lifetime_s',
                   'input_timeout_s'})
 
 CHOICES = {'resample': ('fps', 'random'), 'device': ('cpu', 'cuda'),
-           'qos_reliability': ('reliable', 'best_effort'), 'up_axis': UP_AXES,
+           'qos_reliability': QOS_CHOICES, 'up_axis': UP_AXES,
            'search': ('auto', 'exact', 'indexed')}
 
 
-def settings_from_values(values: dict[str, Any]) -> Settings:
+def topic_key(topic: str) -> str:
+    """The <key> of an input topic's `topics.<key>.<name>` parameters: '/a/b' -> 'a.b'."""
+    return topic.strip('/').replace('/', '.')
+
+
+def split_topic_parameter(name: str) -> tuple[str, str] | None:
+    """'topics.a.b.segment_field' -> ('a.b', 'segment_field'); None if not topics.*."""
+    if not name.startswith(TOPIC_PREFIX):
+        return None
+    key, _, setting = name[len(TOPIC_PREFIX):].rpartition('.')
+    return key, setting
+
+
+def topic_settings(values: dict[str, Any], topics: tuple[str, ...],
+                   overrides: dict[str, Any]) -> tuple[TopicSettings, ...]:
+    """Each input topic's settings: the node's, replaced by its `topics.<key>.*` overrides.
+
+    Raises NodeConfigError for a key that names no input topic, an unknown setting name or
+    a value outside the setting's choices.
+    """
+    keys = {topic_key(t): i for i, t in enumerate(topics)}
+    per = [{name: values[name] for name in TOPIC_PARAMETERS} for _ in topics]
+    for name, value in sorted(overrides.items()):
+        key, setting = split_topic_parameter(name) or ('', '')
+        if setting not in TOPIC_PARAMETERS:
+            hint = closest_parameter(setting, TOPIC_PARAMETERS)
+            raise NodeConfigError(f'parameter {name}: {setting!r} is not a per-topic setting '
+                                  f'({", ".join(TOPIC_PARAMETERS)})'
+                                  + (f"; did you mean '{hint}'?" if hint else ''))
+        if key not in keys:
+            raise NodeConfigError(f'parameter {name}: {key!r} is no input topic (keys: '
+                                  f'{", ".join(keys)}; topics.<input topic without the '
+                                  "leading '/', '/' written '.'>.<setting>)")
+        choices = CHOICES.get(setting)
+        if choices is not None and value not in choices:
+            raise NodeConfigError(f'parameter {name}={value!r} must be one of '
+                                  f'{", ".join(choices)}')
+        per[keys[key]][setting] = str(value)
+    return tuple(TopicSettings(**p) for p in per)
+
+
+def settings_from_values(values: dict[str, Any],
+                         topic_overrides: dict[str, Any] | None = None) -> Settings:
     """Validate declared parameter values (name -> value) into Settings.
 
-    Ranges are enforced by the descriptors when declared; this checks what they cannot
-    express (choices, topic lists, CUDA availability). Raises NodeConfigError.
+    topic_overrides: the `topics.<key>.<name>` parameters (name -> value). Ranges are
+    enforced by the descriptors when declared; this checks what they cannot express
+    (choices, topic lists, CUDA availability). Raises NodeConfigError.
     """
     values = dict(values)
     for name, choices in CHOICES.items():
@@ -159,6 +273,9 @@ def settings_from_values(values: dict[str, Any]) -> Settings:
     if len(set(topics)) != len(topics):
         raise NodeConfigError(f'parameter input_topics={list(topics)} repeats a topic')
     values['input_topics'] = topics
+    values['no_segment_ids'] = tuple(str(v) for v in values.get('no_segment_ids') or ())
+    NoSegment.parse(values['no_segment_ids'])          # raises on a bad entry
+    values['topics'] = topic_settings(values, topics, topic_overrides or {})
     if values['device'] == 'cuda':
         import torch
         if not torch.cuda.is_available():
@@ -202,7 +319,8 @@ def unknown_override_warnings(names: Any) -> list[str]:
     """
     out = []
     for name in sorted(names):
-        if name in PARAMETERS or name in _FOREIGN or name.startswith('qos_overrides.'):
+        if (name in PARAMETERS or name in _FOREIGN or name.startswith('qos_overrides.')
+                or name.startswith(TOPIC_PREFIX)):     # checked by topic_settings
             continue
         hint = closest_parameter(name, PARAMETERS)
         out.append(f"unknown parameter '{name}' ignored"

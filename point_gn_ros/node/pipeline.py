@@ -105,6 +105,8 @@ class Pipeline:
         self.settings = settings
         self.topic_names: list[str] = list(settings.input_topics)
         self.frame_rotation: Callable[[str], np.ndarray | None] = lambda frame_id: None
+        # topic index -> its own convention (topics.<key>.up_axis); others: frame_rotation
+        self.topic_rotations: dict[int, Callable[[str], np.ndarray | None]] = {}
         self._stats = stats
         self._warn = warn
         self._stop = stop
@@ -157,6 +159,14 @@ class Pipeline:
         reported).
         """
         name_os_thread()
+        # Floating-point errors on garbage input (overflow, invalid) are counted in the
+        # diagnostics (numeric_warnings), not written to the log as RuntimeWarnings.
+        with np.errstate(over='call', invalid='call', divide='call', under='ignore',
+                         call=self._stats.on_numeric_warning):
+            self._serve(queue, publish, alive)
+
+    def _serve(self, queue: WorkQueue[Any], publish: Callable[[Answer], None],
+               alive: Callable[[], bool]) -> None:
         busy = False
         ahead: Batch | None = None       # started, answered after the next one is started
         while not self._stop.is_set():
@@ -333,7 +343,7 @@ class Pipeline:
         """
         from point_gn_ros.pointcloud2 import decode_xyz, split_segments
         s = self.settings
-        seg_field = s.segment_field
+        seg_field = s.topic(item.topic_index).segment_field
         try:
             # allow_empty: an empty or all-NaN cloud counts as 'too few points', not malformed.
             decoded = decode_xyz(item.payload, (seg_field,) if seg_field else (),
@@ -344,11 +354,13 @@ class Pipeline:
                                                       f'min_points is {s.min_points}')
                     return None
                 return Job(item, [-1], [decoded.xyz], self._rotation(item))
-            segments = split_segments(decoded, seg_field)
+            unsegmented = s.unsegmented
+            kept = split_segments(decoded, seg_field, skip_ids=unsegmented.ids,
+                                  skip_negative=unsegmented.negative,
+                                  skip_type_max=unsegmented.type_max)
         except DecodeError as exc:
             self.reject(item, reason_key(str(exc)), str(exc))
             return None
-        kept = [(seg_id, xyz) for seg_id, xyz in segments if seg_id >= 0]  # < 0: unsegmented
         big = [(seg_id, xyz) for seg_id, xyz in kept if len(xyz) >= s.min_points]
         if len(kept) > len(big):
             self._stats.on_skipped_segments(len(kept) - len(big))
@@ -366,7 +378,8 @@ class Pipeline:
                    self._rotation(item))
 
     def _rotation(self, item: QueueItem[Any]) -> np.ndarray | None:
-        return self.frame_rotation(item.payload.header.frame_id)
+        rotation = self.topic_rotations.get(item.topic_index, self.frame_rotation)
+        return rotation(item.payload.header.frame_id)
 
     def classify(self, clouds: list[np.ndarray]) -> Results | None:
         """Labels, scores, top-k ids and scores of clouds, in chunks of max_batch.

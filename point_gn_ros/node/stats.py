@@ -91,6 +91,7 @@ class StatsSnapshot:
     failed: dict[str, int] = field(default_factory=dict)    # stage -> messages
     in_flight: int = 0                                      # received, not yet settled
     objects_truncated: int = 0
+    numeric_warnings: int = 0                               # numpy FP errors (garbage input)
 
     @property
     def answered(self) -> int:
@@ -126,6 +127,15 @@ class NodeStats:
         self._failed: Counter[str] = Counter()
         self._in_flight = 0
         self._objects_truncated = 0
+        self._numeric_warnings = 0
+
+    def on_numeric_warning(self, kind: str = '', flag: int = 0) -> None:
+        """A numpy floating-point error (overflow, invalid, divide) in the worker: counted.
+
+        The signature is numpy's error callback (np.errstate(call=...)).
+        """
+        with self._lock:
+            self._numeric_warnings += 1
 
     def on_received(self, topic_index: int) -> None:
         """A message arrived (subscription callback); it is in flight until settled."""
@@ -208,4 +218,5 @@ class NodeStats:
                 failed=dict(self._failed),
                 in_flight=self._in_flight,
                 objects_truncated=self._objects_truncated,
+                numeric_warnings=self._numeric_warnings,
             )

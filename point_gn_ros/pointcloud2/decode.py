@@ -262,12 +262,15 @@ def decode_xyz(msg: Any, extra_fields: Sequence[str] = (), *,
 
 
 def split_segments(decoded: DecodedCloud, field_name: str, *,
-                   skip_ids: Iterable[int] = ()) -> list[tuple[int, np.ndarray]]:
+                   skip_ids: Iterable[int] = (), skip_negative: bool = False,
+                   skip_type_max: bool = False) -> list[tuple[int, np.ndarray]]:
     """Split a decoded cloud into objects by an integer segment field.
 
     ``field_name`` must have been requested via ``decode_xyz(..., extra_fields=[field_name])``.
     Float fields are accepted when every value is a finite integer. ``skip_ids`` drops e.g. a
-    background label. Returns [(segment_id, xyz (M_i, 3) float32)] sorted by id; each segment
+    background label; ``skip_negative`` every id < 0; ``skip_type_max`` the largest value of an
+    unsigned integer field's type (0xFFFFFFFF for UINT32, 65535 for UINT16, 255 for UINT8: a
+    common "no label"). Returns [(segment_id, xyz (M_i, 3) float32)] sorted by id; each segment
     keeps the original point order. Raises DecodeError for non-integer ids and for ids (not
     skipped) outside the int32 range, which the ``~/classifications`` segment_id cannot carry.
     """
@@ -275,6 +278,9 @@ def split_segments(decoded: DecodedCloud, field_name: str, *,
         raise DecodeError(f'segment field {field_name!r} was not decoded '
                           f'(have: {", ".join(decoded.fields) or "none"})')
     ids = decoded.fields[field_name]
+    skip = {int(s) for s in skip_ids}
+    if skip_type_max and ids.dtype.kind == 'u':
+        skip.add(int(np.iinfo(ids.dtype).max))
     if ids.shape[0] != decoded.xyz.shape[0]:
         raise DecodeError(f'segment field {field_name!r} has {ids.shape[0]} values for '
                           f'{decoded.xyz.shape[0]} points')
@@ -290,7 +296,6 @@ def split_segments(decoded: DecodedCloud, field_name: str, *,
         raise DecodeError(f'segment field {field_name!r} is not numeric ({ids.dtype})')
     if ids.size == 0:
         return []
-    skip = {int(s) for s in skip_ids}
     lo, hi = int(ids.min()), int(ids.max())
     # Stable sort so points keep their order within a segment. A small id range is shifted
     # into uint8/uint16, where numpy's stable sort is an O(N) radix sort (~10x faster).
@@ -305,7 +310,7 @@ def split_segments(decoded: DecodedCloud, field_name: str, *,
     out = []
     for start, chunk in zip(starts, np.split(xyz_sorted, starts[1:]), strict=True):
         seg_id = int(sorted_ids[start])
-        if seg_id in skip:
+        if seg_id in skip or (skip_negative and seg_id < 0):
             continue
         if not -INT32_LIMIT <= seg_id < INT32_LIMIT:  # the answer's segment_id is an INT32
             raise DecodeError(f'segment field {field_name!r} holds an id out of range for '
