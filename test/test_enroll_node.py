@@ -41,7 +41,8 @@ def _variants(obj: np.ndarray, n: int, seed: int) -> list[np.ndarray]:
 def _start(bank: Path, log: Path, **params) -> NodeProcess:
     return NodeProcess({'bank_path': str(bank), 'num_points': TEST_NUM_POINTS,
                         'input_topics': [TOPIC], 'qos_reliability': 'reliable',
-                        'qos_depth': 100, 'queue_size': 200, 'max_batch': 8, **params}, log)
+                        'qos_depth': 100, 'queue_size': 200, 'max_batch': 8,
+                        'enable_enrollment': True, **params}, log)
 
 
 class Client:

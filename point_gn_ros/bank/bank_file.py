@@ -8,8 +8,8 @@ the old file or the new one. The copy-on-write operations on it are in bank/enro
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-import glob
 import os
+import re
 import threading
 from pathlib import Path
 from typing import Any
@@ -22,6 +22,8 @@ from point_gn_ros.bank.refit import ScatterStats, vote_to_z
 from point_gn_ros.bank.store import FeatureBank, quantized, unpack_int4
 from point_gn_ros.errors import BankError
 
+# The temporary files of save_atomic (+ FeatureBank.save's own `.tmp` beside them).
+_TEMP_NAME = re.compile(r'\.(?P<name>.+)\.(?P<pid>\d+)\.[0-9a-f]+\.tmp\.npz(\.tmp)?')
 # Rows per block when a pass goes over a whole bank (scatter statistics, the stored-rows
 # check): a large section's float temporaries stay small.
 _BLOCK_ROWS = 8192
@@ -153,19 +155,21 @@ def remove_stale_temps(path: str | os.PathLike[str]) -> list[Path]:
 
     `.<name>.<pid>.<thread>.tmp.npz` (and the `.tmp` that `FeatureBank.save` writes beside
     it) are left only by a process killed mid-save (kill -9, power cut); a live process's
-    (another saver's) are kept. -> the files removed.
+    (another saver's) are kept. path: the bank file, or a folder (every bank in it).
+    -> the files removed.
     """
     path = Path(path)
+    folder, name = (path, None) if path.is_dir() else (path.parent, path.name)
     removed = []
     try:
-        candidates = list(path.parent.glob(f'.{glob.escape(path.name)}.*.tmp.npz*'))
+        candidates = list(folder.glob('.*.tmp.npz*'))
     except OSError:
         return removed
     for tmp in candidates:
-        rest = tmp.name[len(path.name) + 2:].split('.')    # pid, thread, tmp, npz[, tmp]
-        if not rest[0].isdigit() or rest[2:] not in (['tmp', 'npz'], ['tmp', 'npz', 'tmp']):
+        m = _TEMP_NAME.fullmatch(tmp.name)
+        if m is None or (name is not None and m['name'] != name):
             continue
-        pid = int(rest[0])
+        pid = int(m['pid'])
         if pid != os.getpid() and _alive(pid):
             continue
         try:

@@ -159,15 +159,15 @@ class LiveBank(Generic[Model]):
             self._snap = self._snapshot(self._snap.file)
         return self._snap
 
-    def save(self, path: str | os.PathLike[str]) -> tuple[Path, int]:
+    def save(self, path: str | os.PathLike[str], make_dirs: bool = True) -> tuple[Path, int]:
         """Atomically write the current version; -> (path, version written).
 
         Holds the writer lock so that no enrollment is lost between snapshot and write;
-        readers are not affected.
+        readers are not affected. make_dirs=False: the folder must exist.
         """
         with self._lock:
             snap = self._snap
-            return save_atomic(snap.file, path), snap.version
+            return save_atomic(snap.file, path, make_dirs), snap.version
 
     def _snapshot(self, file: BankFile, previous: Snapshot[Model] | None = None
                   ) -> Snapshot[Model]:
