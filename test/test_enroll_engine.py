@@ -266,3 +266,18 @@ def test_waiting_service_requests_are_bounded_and_all_answered(tmp_path: Path) -
     assert sum(ok for ok, _ in results) == MAX_SERVICE_OPS + 1
     assert eng.counters['busy'] == len(busy)
     eng.close()
+
+
+def test_unpaired_detection_arrays_wait_in_a_bounded_list() -> None:
+    from types import SimpleNamespace
+
+    from point_gn_ros.node.enroll_detections import StampPairing
+
+    def msg(sec: int) -> SimpleNamespace:
+        return SimpleNamespace(header=SimpleNamespace(stamp=SimpleNamespace(sec=sec,
+                                                                            nanosec=0)))
+    pairing = StampPairing(5.0, max_waiting=4)
+    for sec in range(10):                        # never paired: only the newest 4 wait
+        assert pairing.add(msg(sec), None) == []
+    assert pairing.expired == 6
+    assert pairing.add(None, msg(9)) and not pairing.add(None, msg(0))

@@ -177,7 +177,7 @@ def test_saves_go_where_the_operator_said_and_always_load(harness: Harness, tiny
         p.set_param('enroll_class', 'sofa')
         p.pub_cloud.publish(cloud_msg(big, 'base_link', stamp(11, 0)))
         assert harness.spin_until(lambda: p.enroll_diag().get('enroll_refused.class_name') == '2'
-                                  and p.enroll_diag().get('enroll_refused.undecodable') == '1',
+                                  and p.enroll_diag().get('enroll_refused.too_many_points') == '1',
                                   20.0), (p.enroll_diag(), node.log())
         # Save names: confined to the folder, no new folders, no hidden files.
         for bad in ('../escape.npz', '/tmp/abs.npz', 'new/dir.npz', '.hidden.npz', 'b.txt'):

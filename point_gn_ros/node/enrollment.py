@@ -75,6 +75,8 @@ except ImportError:          # a ROS install without vision_msgs: PointCloud2 ro
 
 # A detection array waits this long for the scene cloud of the same stamp (and vice versa).
 PAIR_TIMEOUT_S = 5.0
+# Detection arrays (and scene clouds) waiting for their partner at most; older ones expire.
+PAIR_MAX_WAITING = 16
 # Requests a service's DDS reader keeps before it is served (KEEP_LAST): a burst of up to
 # this many calls is taken, each answered (done, or "busy" at once).
 SERVICE_QUEUE_DEPTH = 100
@@ -277,7 +279,7 @@ class Enrollment(ManagedEntity):
         self._subs = [node.create_subscription(PointCloud2, '~/enroll_cloud',
                                                self._on_cloud, qos)]
         if Detection3DArray is not None:
-            self._pairing = StampPairing(PAIR_TIMEOUT_S)
+            self._pairing = StampPairing(PAIR_TIMEOUT_S, PAIR_MAX_WAITING)
             self._subs += [
                 node.create_subscription(Detection3DArray, '~/enroll', self._on_detections, qos),
                 node.create_subscription(PointCloud2, '~/enroll_scene', self._on_scene, qos)]
@@ -398,7 +400,7 @@ class Enrollment(ManagedEntity):
                                  allow_empty=True).xyz
             except DecodeError as exc:
                 self.engine.refuse(len(dets.detections), f'scene cloud not decodable: {exc}',
-                                   'undecodable')
+                                   _decode_reason(exc))
                 continue
             rot = self._pipeline.frame_rotation(scene.header.frame_id)
             per_class: dict[str, list] = {}
@@ -423,7 +425,7 @@ class Enrollment(ManagedEntity):
             xyz = decode_xyz(msg, max_points=self._max_points(), allow_empty=True).xyz
         except DecodeError as exc:
             self.engine.refuse(1, f'~/enroll_cloud message not decodable: {exc}',
-                               'undecodable')
+                               _decode_reason(exc))
             return
         rot = self._pipeline.frame_rotation(msg.header.frame_id)
         self.engine.submit(name, [to_z_up(xyz, rot)], '~/enroll_cloud')
@@ -516,6 +518,11 @@ class Enrollment(ManagedEntity):
                                   else 'none')}
         out |= {f'count.{name}': n for name, n in counts.items()}
         return out
+
+
+def _decode_reason(exc: DecodeError) -> str:
+    """The refusal counter of an enrollment cloud the codec refused."""
+    return 'too_many_points' if str(exc).startswith('too many points') else 'undecodable'
 
 
 def save_name_problem(name: str) -> str | None:
