@@ -214,7 +214,7 @@ def test_close_drops_pending_work_at_once_and_publishes_nothing_after(tmp_path: 
     """600 examples waiting, a commit in progress: close() returns within 2 s, one log line."""
     logs: list[str] = []
     eng, live, changes = _engine(tmp_path)
-    eng._log = logs.append                            # noqa: SLF001 - the node's info sink
+    eng.set_log(logs.append)
     eng.max_pending = eng.max_examples = 1000
     rec = _FakeRecognizer()
     started, release = threading.Event(), threading.Event()

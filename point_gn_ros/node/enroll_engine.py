@@ -47,6 +47,8 @@ SERVICE_TIMEOUT_S = 30.0
 MAX_SERVICE_OPS = 4
 # At shutdown, how long close() lets the committer finish the change it is applying.
 CLOSE_WAIT_S = 1.0
+# The committer's changes that services ask for (bounded by MAX_SERVICE_OPS).
+_SERVICE_KINDS = ('remove', 'save')
 # Niceness of the committer thread (Linux, per thread): refits yield the CPU to answers.
 COMMITTER_NICE = 10
 
@@ -321,7 +323,7 @@ class EnrollEngine:
                         self._ops[0].reqs[0].class_name == op.reqs[0].class_name and \
                         self._ops[0].reqs[0].source == op.reqs[0].source:
                     op.reqs += self._ops.popleft().reqs     # one version for a stream
-                if op.future is not None:
+                if op.kind in _SERVICE_KINDS:
                     self._service_ops -= 1
             try:
                 result = self._apply(op)
@@ -432,9 +434,9 @@ class EnrollEngine:
             self._lock.notify_all()
         fut.result(timeout)
 
-    @property
-    def closed(self) -> bool:
-        return self._closed
+    def set_log(self, log: Callable[[str], object]) -> None:
+        """Another info sink (the node's logger is gone once its context is shut down)."""
+        self._log = log
 
     def close(self) -> None:
         """Stop now: drop what waits (one log line), wait at most CLOSE_WAIT_S, publish nothing.
@@ -447,16 +449,17 @@ class EnrollEngine:
                 return
             self._closed = True
             reqs = list(self._requests) + [r for op in self._ops for r in op.reqs]
-            services = [op for op in self._ops if op.future is not None]
+            waiting = [op for op in self._ops if op.future is not None]
             self._requests.clear()
             self._ops.clear()
             self._capture = None
             dropped = sum(len(r.clouds) for r in reqs)
             self._pending -= dropped
             self._lock.notify_all()
-        for op in services:
+        for op in waiting:
             if not op.future.done():
                 op.future.set_result((False, 'the node is shutting down: not done'))
+        services = [op for op in waiting if op.kind in _SERVICE_KINDS]
         if dropped or services:
             self._count('dropped', dropped)
             self._log(f'enrollment stopped: {dropped} pending example(s) of '

@@ -50,6 +50,7 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from pathlib import Path
 
+import rclpy.logging
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.lifecycle import ManagedEntity, TransitionCallbackReturn
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -338,6 +339,9 @@ class Enrollment(ManagedEntity):
         if self.live is not None:
             self.live.on_refit = None
         if self.engine is not None:
+            if not self.node.context.ok():     # /rosout is gone: a console-only logger
+                self.engine.set_log(rclpy.logging.get_logger(
+                    f'{self.node.get_name()}.shutdown').info)
             self.engine.close()
 
     def _make_model(self, bank: Any, previous: Any = None) -> Any:
