@@ -25,7 +25,7 @@ from point_gn_ros.bank.enroll import (BankFile, EnrollResult, RefitPolicy, activ
 from point_gn_ros.bank import ridge
 from point_gn_ros.bank.rows import with_room
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.core.threads import name_os_thread
+from point_gn_ros.core.threads import lower_priority, name_os_thread
 
 Model = TypeVar('Model')
 log = logging.getLogger(__name__)
@@ -132,6 +132,7 @@ class LiveBank(Generic[Model]):
         changed meanwhile, the newer version is refitted instead.
         """
         name_os_thread()
+        lower_priority()          # a background refit: the threads that answer come first
         while True:
             snap = self._snap
             if not _pending(snap.file):

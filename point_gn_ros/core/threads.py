@@ -8,6 +8,7 @@ helper does with pthread_setname_np ("pgn_lone"); elsewhere it does nothing.
 from __future__ import annotations
 
 import ctypes
+import os
 import sys
 import threading
 
@@ -24,3 +25,17 @@ def name_os_thread(name: str | None = None) -> bool:
         return ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_NAME, text, 0, 0, 0) == 0
     except (OSError, AttributeError):
         return False
+
+
+# Niceness of background threads that rebuild what answers use (enrollment commits, ridge
+# refits): the threads that answer get the CPU first.
+BACKGROUND_NICE = 10
+
+
+def lower_priority(nice: int = BACKGROUND_NICE) -> bool:
+    """Make the calling thread `nice` (Linux: per thread); True if done."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+    except (AttributeError, OSError):
+        return False              # not Linux, or not allowed: the default priority
+    return True

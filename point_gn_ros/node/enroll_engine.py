@@ -38,7 +38,7 @@ from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.bank.validate import class_name_problem
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.core.fusion import with_fused
-from point_gn_ros.core.threads import name_os_thread
+from point_gn_ros.core.threads import lower_priority, name_os_thread
 from point_gn_ros.errors import PointGNError
 
 # How long a service waits for the committer (forget, save) before answering "still running".
@@ -49,8 +49,6 @@ MAX_SERVICE_OPS = 4
 CLOSE_WAIT_S = 1.0
 # The committer's changes that services ask for (bounded by MAX_SERVICE_OPS).
 _SERVICE_KINDS = ('remove', 'save')
-# Niceness of the committer thread (Linux, per thread): refits yield the CPU to answers.
-COMMITTER_NICE = 10
 
 
 @dataclass
@@ -308,10 +306,7 @@ class EnrollEngine:
     def _commit_loop(self) -> None:
         """Committer thread: apply the queued changes in order until closed."""
         name_os_thread()
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), COMMITTER_NICE)
-        except (AttributeError, OSError):
-            pass                  # not Linux, or not allowed: the default priority
+        lower_priority()          # refits yield the CPU to the worker's answers
         while True:
             with self._lock:
                 while not self._ops and not self._closed:

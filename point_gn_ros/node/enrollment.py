@@ -81,6 +81,9 @@ PAIR_MAX_WAITING = 16
 # Requests a service's DDS reader keeps before it is served (KEEP_LAST): a burst of up to
 # this many calls is taken, each answered (done, or "busy" at once).
 SERVICE_QUEUE_DEPTH = 100
+# Enrollment examples the worker encodes in one step at most (a query arriving meanwhile
+# waits for them): a few, so that a step costs a fraction of a micro-batch.
+ENROLL_CHUNK = 8
 # While input waits, the worker still takes one enrollment step at least this often.
 ENROLL_STEP_MIN_S = 1.0
 _WRITABLE = ('enroll_class', 'save_bank_name', 'capture_topic')
@@ -228,7 +231,8 @@ class Enrollment(ManagedEntity):
         # The node's worker (node/pipeline.py) calls these between and inside micro-batches.
         self._pipeline = node._pipeline
         self.engine = EnrollEngine(
-            self.live, self._swap, log.info, node._warn, chunk=node.settings.max_batch,
+            self.live, self._swap, log.info, node._warn,
+            chunk=min(node.settings.max_batch, ENROLL_CHUNK),
             max_pending=self.values['enroll_max_pending'],
             capture_max=self.values['capture_max'], min_points=node.settings.min_points,
             augment=augment, fuse_views=bool(self.values['enroll_fuse_views']),
