@@ -187,8 +187,9 @@ class FeatureBank:
                 raise ValueError('a bank with a views section needs its gate')
             arrays.update({VIEWS_PREFIX + k: v for k, v in self.views._arrays(dtype).items()})
             arrays.update(self.gate.arrays())
-        for key in [k for k in arrays if k == 'meta' or k.endswith('_meta')]:
-            check_meta_writable(arrays[key])   # a file that would not load is not written
+        for key in ('meta', VIEWS_PREFIX + 'meta'):
+            if key in arrays:                  # a file that would not load is not written
+                check_meta_writable(arrays[key])
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + '.tmp')
         try:
