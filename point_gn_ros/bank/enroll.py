@@ -285,6 +285,14 @@ def _check_name(name: str) -> str:
     return name
 
 
+def _clipped(text: str, limit: int) -> str:
+    """`text`, its middle elided when longer than `limit` (its start and end say the most)."""
+    if len(text) <= limit:
+        return text
+    head = (limit - 5) // 2
+    return f'{text[:head]} ... {text[-(limit - 5 - head):]}'
+
+
 def _log(bank: FeatureBank, action: str, class_name: str, count: int, source: str,
          when: datetime | None, **extra: Any) -> dict[str, Any]:
     meta = copy_meta(bank.meta)
@@ -292,7 +300,7 @@ def _log(bank: FeatureBank, action: str, class_name: str, count: int, source: st
     meta['bank_version'] = version
     entry = {'version': version, 'action': action, 'class': class_name, 'count': int(count),
              'time': (when or datetime.now(UTC)).isoformat(timespec='seconds'),
-             'source': str(source)[:MAX_SOURCE_CHARS], **extra}
+             'source': _clipped(str(source), MAX_SOURCE_CHARS), **extra}
     history = [*meta.get('enrollments', []), entry]
     if len(history) > MAX_HISTORY:         # compacted: the oldest entries are counted
         meta['enrollments_compacted'] = (int(meta.get('enrollments_compacted', 0))
