@@ -25,7 +25,7 @@ from point_gn_ros.bank.enroll import (BankFile, EnrollResult, RefitPolicy, activ
 from point_gn_ros.bank import ridge
 from point_gn_ros.bank.rows import with_room
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.core.threads import lower_priority, name_os_thread
+from point_gn_ros.core.threads import lower_priority, name_os_thread, trim_heap
 
 Model = TypeVar('Model')
 log = logging.getLogger(__name__)
@@ -147,6 +147,8 @@ class LiveBank(Generic[Model]):
                 if self._snap is snap:
                     self._snap = published = self._snapshot(fitted, snap)
                     break
+            trim_heap()           # the refit's buffers: memory back to the OS
+        trim_heap()
         if self.on_refit is not None:
             try:
                 self.on_refit(published)

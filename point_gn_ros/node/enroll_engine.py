@@ -38,7 +38,7 @@ from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.bank.validate import class_name_problem
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.core.fusion import with_fused
-from point_gn_ros.core.threads import lower_priority, name_os_thread
+from point_gn_ros.core.threads import lower_priority, name_os_thread, trim_heap
 from point_gn_ros.errors import PointGNError
 
 # How long a service waits for the committer (forget, save) before answering "still running".
@@ -331,6 +331,8 @@ class EnrollEngine:
                         self._pending -= op.examples
             if op.future is not None and not op.future.done():
                 op.future.set_result(result)
+            if op.kind in ('add', 'remove'):
+                trim_heap()       # the versions it replaced: memory back to the OS
 
     def _apply(self, op: _Op) -> tuple[bool, str]:
         if op.kind == 'add':
