@@ -37,7 +37,7 @@ $(EXTRAS_STAMP): $(STAMP) $(EXTRAS_SCRIPT)
 
 # The node with the shipped default bank, fed real held-out ModelNet40 objects.
 demo: $(STAMP)
-	$(ROS_ENV) && python -m point_gn_ros.clients.demo
+	$(ROS_ENV) && python -m point_gn_ros.clients.demo $(DEMO_ARGS)
 
 test: $(STAMP) $(WITH_EXTRAS)
 	$(ROS_ENV) && python -m pytest -q test

@@ -70,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     log = Path(tempfile.mkdtemp(prefix='enroll_latency_')) / 'node.log'
     node = NodeProcess({'bank_path': args.bank, 'input_topics': ['objects'],
                         'qos_reliability': 'reliable', 'qos_depth': 200, 'queue_size': 400,
-                        'enroll_class': 'my_sofa', 'search': args.search,
+                        'enable_enrollment': True, 'enroll_class': 'my_sofa',
+                        'search': args.search,
                         'enroll_augment': args.augment,
                         'enroll_vote_prior': float(args.vote_prior),
                         'enroll_lda_prior': args.lda_prior,

@@ -99,7 +99,7 @@ def test_bad_input_is_refused_clearly() -> None:
         add_examples(bf, torch.zeros(0, D), 'x')
     with pytest.raises(EnrollError, match='non-finite'):
         add_examples(bf, torch.full((1, D), float('nan')), 'x')
-    with pytest.raises(EnrollError, match='one line'):
+    with pytest.raises(EnrollError, match='single lines'):
         add_examples(bf, torch.zeros(1, D), ' ')
 
 

@@ -170,3 +170,114 @@ def test_a_fused_capture_adds_the_union_and_its_scans(tmp_path: Path) -> None:
     assert eng.counters['not_fused'] == 1 and any('do not overlap' in w for w in warnings)
     assert eng.pending() == 0
     eng.close()
+
+
+def test_names_the_bank_could_not_load_are_refused_with_a_counted_reason(tmp_path: Path
+                                                                       ) -> None:
+    eng, live, changes = _engine(tmp_path)
+    for name in ('chair\rtable', 'x' * 10_000, 'a\nb'):
+        ok, why = eng.submit(name, [_cloud(0)], '~/enroll_cloud')
+        assert not ok and 'single lines' in why and len(why) < 300
+    assert eng.refused_by == {'class_name': 3} and eng.counters['refused'] == 3
+    assert eng.pending() == 0
+    eng.close()
+
+
+def test_caps_on_classes_examples_and_pending_are_counted(tmp_path: Path) -> None:
+    eng, live, changes = _engine(tmp_path)          # 3 classes, max_pending 100
+    eng.max_classes, eng.max_examples = 5, 10
+    rec = _FakeRecognizer()
+    assert eng.submit('d', [_cloud(i) for i in range(15)], 'x')[0]      # 5 over the call cap
+    assert eng.submit('e', [_cloud(1)], 'x')[0]
+    assert not eng.submit('f', [_cloud(2)], 'x')[0]                      # a 6th class
+    assert eng.submit('a', [_cloud(3)], 'x')[0]                          # an existing one
+    assert eng.refused_by == {'per_call': 5, 'class_limit': 1}
+    assert eng.pending() == 12
+    for i in range(9):                                # 12 + 9 * 10 = 102 > 100: one refused
+        eng.submit('e', [_cloud(j) for j in range(10)], f'y{i}')
+    assert eng.refused_by['queue_full'] == 10 and eng.pending() == 92
+    # Encoded but not committed still counts as pending (the committer is held up here).
+    hold = threading.Event()
+    real_add = live.add
+    live.add = lambda *a, **k: (hold.wait(10), real_add(*a, **k))[1]
+    while eng.step(rec):
+        pass
+    assert eng.pending() == 92
+    hold.set()
+    eng.flush(10)
+    assert eng.pending() == 0 and eng.counters['enrolled'] == 92
+    assert eng.counters['enrolled'] + eng.counters['refused'] == 15 + 1 + 1 + 1 + 90
+    eng.close()
+
+
+def test_close_drops_pending_work_at_once_and_publishes_nothing_after(tmp_path: Path) -> None:
+    """600 examples waiting, a commit in progress: close() returns within 2 s, one log line."""
+    logs: list[str] = []
+    eng, live, changes = _engine(tmp_path)
+    eng.set_log(logs.append)
+    eng.max_pending = eng.max_examples = 1000
+    rec = _FakeRecognizer()
+    started, release = threading.Event(), threading.Event()
+    real_add = live.add
+
+    def slow_add(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - a long refit
+        started.set()
+        release.wait(30)
+        return real_add(*args, **kwargs)
+    live.add = slow_add
+    assert eng.submit('mug', [_cloud(0)], 'first')[0]
+    while eng.step(rec):
+        pass
+    assert started.wait(10)
+    for i in range(600):
+        assert eng.submit('cup', [_cloud(i)], f'm{i % 7}')[0]
+    assert eng.save_later(str(tmp_path / 'b.npz')) is not None
+    t0 = time.monotonic()
+    eng.close()
+    assert time.monotonic() - t0 < 2.0
+    assert eng.pending() == 1                         # the one in progress, abandoned
+    assert any('600 pending example(s) of 1 class(es) dropped, 1 forget/save request(s) not '
+               'done' in text for text in logs), logs
+    release.set()
+    eng._committer.join(10)                           # noqa: SLF001
+    assert changes == [] and eng.pending() == 0       # finished, but not published
+    assert eng.counters['dropped'] == 600
+    assert not eng.submit('cup', [_cloud(1)], 'late')[0]
+    assert eng.save_later(str(tmp_path / 'b.npz')).result(1)[0] is False
+    assert not (tmp_path / 'b.npz').exists()
+
+
+def test_waiting_service_requests_are_bounded_and_all_answered(tmp_path: Path) -> None:
+    """30 saves at once while the committer is busy: each is answered, the excess 'busy'."""
+    from point_gn_ros.node.enroll_engine import MAX_SERVICE_OPS
+
+    eng, live, changes = _engine(tmp_path)
+    release, started = threading.Event(), threading.Event()
+    real_save = live.save
+    live.save = lambda *a, **k: (started.set(), release.wait(10), real_save(*a, **k))[2]
+    futures = [eng.save_later(str(tmp_path / 'b0.npz'))]
+    assert started.wait(10)                            # the committer is in the first
+    futures += [eng.save_later(str(tmp_path / f'b{i}.npz')) for i in range(1, 30)]
+    busy = [f for f in futures if f.done()]
+    assert len(busy) == 30 - MAX_SERVICE_OPS - 1
+    assert all(f.result()[0] is False and 'busy' in f.result()[1] for f in busy)
+    release.set()
+    results = [f.result(10) for f in futures]
+    assert sum(ok for ok, _ in results) == MAX_SERVICE_OPS + 1
+    assert eng.counters['busy'] == len(busy)
+    eng.close()
+
+
+def test_unpaired_detection_arrays_wait_in_a_bounded_list() -> None:
+    from types import SimpleNamespace
+
+    from point_gn_ros.node.enroll_detections import StampPairing
+
+    def msg(sec: int) -> SimpleNamespace:
+        return SimpleNamespace(header=SimpleNamespace(stamp=SimpleNamespace(sec=sec,
+                                                                            nanosec=0)))
+    pairing = StampPairing(5.0, max_waiting=4)
+    for sec in range(10):                        # never paired: only the newest 4 wait
+        assert pairing.add(msg(sec), None) == []
+    assert pairing.expired == 6
+    assert pairing.add(None, msg(9)) and not pairing.add(None, msg(0))

@@ -41,32 +41,36 @@ def _variants(obj: np.ndarray, n: int, seed: int) -> list[np.ndarray]:
 def _start(bank: Path, log: Path, **params) -> NodeProcess:
     return NodeProcess({'bank_path': str(bank), 'num_points': TEST_NUM_POINTS,
                         'input_topics': [TOPIC], 'qos_reliability': 'reliable',
-                        'qos_depth': 100, 'queue_size': 200, 'max_batch': 8, **params}, log)
+                        'qos_depth': 100, 'queue_size': 200, 'max_batch': 8,
+                        'enable_enrollment': True, **params}, log)
 
 
 class Client:
     """The other process's view of the node: publishers, collectors, service calls."""
 
-    def __init__(self, harness: Harness, node: NodeProcess) -> None:
+    def __init__(self, harness: Harness, node: NodeProcess, fqn: str = NODE_FQN,
+                 enrolling: bool = True) -> None:
+        """fqn: the node's name; enrolling: wait for its ~/enroll_cloud subscription too."""
         from diagnostic_msgs.msg import DiagnosticArray
         from sensor_msgs.msg import PointCloud2
         from std_msgs.msg import String
 
-        self.h, self.node = harness, node
+        self.h, self.node, self.fqn = harness, node, fqn
         self.pub = harness.node.create_publisher(PointCloud2, TOPIC, reliable_qos(200))
-        self.pub_cloud = harness.node.create_publisher(PointCloud2, f'{NODE_FQN}/enroll_cloud',
+        self.pub_cloud = harness.node.create_publisher(PointCloud2, f'{fqn}/enroll_cloud',
                                                        reliable_qos(100))
         # Own lists and subscriptions (harness.collect shares one list per topic across
         # the module's clients), destroyed by close().
         self.answers, self.names, self.diag = [], [], []
         self._subs = [harness.node.create_subscription(t, topic, out.append, qos) for t, topic,
-                      out, qos in ((PointCloud2, f'{NODE_FQN}/classifications', self.answers,
+                      out, qos in ((PointCloud2, f'{fqn}/classifications', self.answers,
                                     reliable_qos(500)),
-                                   (String, f'{NODE_FQN}/class_names', self.names,
+                                   (String, f'{fqn}/class_names', self.names,
                                     latched_qos()),
                                    (DiagnosticArray, '/diagnostics', self.diag,
                                     reliable_qos(50)))]
-        harness.wait_for_subscribers([self.pub, self.pub_cloud], node)
+        harness.wait_for_subscribers([self.pub, self.pub_cloud] if enrolling else [self.pub],
+                                     node)
         harness.spin_for(0.5)
 
     def close(self) -> None:
@@ -78,21 +82,26 @@ class Client:
     def call(self, name: str) -> tuple[bool, str]:
         from std_srvs.srv import Trigger
         try:       # one client per service, kept (node_testing.Harness.call)
-            result = self.h.call(Trigger, f'{NODE_FQN}/{name}', Trigger.Request(), TIMEOUT_S)
+            result = self.h.call(Trigger, f'{self.fqn}/{name}', Trigger.Request(), TIMEOUT_S)
         except AssertionError as exc:
             raise AssertionError(f'{exc}\n{self.node.log()}') from None
         return result.success, result.message
 
     def set_param(self, name: str, value: str) -> None:
+        ok, reason = self.try_set_param(name, value)
+        assert ok, reason
+
+    def try_set_param(self, name: str, value: str) -> tuple[bool, str]:
+        """Set a string parameter -> (successful, reason)."""
         from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
         from rcl_interfaces.srv import SetParameters
         req = SetParameters.Request(parameters=[Parameter(
             name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING,
                                             string_value=value))])
         # setting a value twice is the same as once: sent again if the answer is lost
-        result = self.h.call(SetParameters, f'{NODE_FQN}/set_parameters', req, TIMEOUT_S,
+        result = self.h.call(SetParameters, f'{self.fqn}/set_parameters', req, TIMEOUT_S,
                              resend_s=5.0).results[0]
-        assert result.successful, result.reason
+        return result.successful, result.reason
 
     def classes(self) -> list[str]:
         return self.names[-1].data.split('\n') if self.names else []

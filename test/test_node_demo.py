@@ -45,6 +45,18 @@ def test_demo_runs_and_stops_the_node_cleanly(tiny_bank: Path) -> None:
     assert 'Traceback' not in out.stderr
 
 
+def test_demo_with_enrollment_teaches_a_class_live(tiny_bank: Path) -> None:
+    """`make demo DEMO_ARGS=--enrollment`: enrollment turned on, one new class taught."""
+    out = subprocess.run([sys.executable, '-m', 'point_gn_ros.clients.demo',
+                          '--bank', str(tiny_bank), '--count', '1', '--kinds', 'scan',
+                          '--enrollment', '--domain-id', str(DOMAIN_ID), '--timeout', '60'],
+                         capture_output=True, text=True, timeout=150, cwd=REPO)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "'my_object' is class 6 of 7" in out.stdout, out.stdout
+    assert len(re.findall(r'predicted \S+ \d\.\d\d', out.stdout)) == 3, out.stdout
+    assert 'node stopped (exit code 0)' in out.stdout
+
+
 def test_bench_node_reports_rates_latency_and_memory(tiny_bank: Path) -> None:
     from point_gn_ros.clients.node_bench import bench_node, format_rows
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 import os
+import re
 import threading
 from pathlib import Path
 from typing import Any
@@ -16,14 +17,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from point_gn_ros.bank.npz_read import read_npz_bounded
 from point_gn_ros.bank.refit import ScatterStats, vote_to_z
 from point_gn_ros.bank.store import FeatureBank, quantized, unpack_int4
+from point_gn_ros.errors import BankError
 
+# The temporary files of save_atomic (+ FeatureBank.save's own `.tmp` beside them).
+_TEMP_NAME = re.compile(r'\.(?P<name>.+)\.(?P<pid>\d+)\.[0-9a-f]+\.tmp\.npz(\.tmp)?')
 # Rows per block when a pass goes over a whole bank (scatter statistics, the stored-rows
 # check): a large section's float temporaries stay small.
 _BLOCK_ROWS = 8192
 
-__all__ = ['BankFile', 'from_stored', 'refitted_file', 'save_atomic', 'stored_dtype']
+__all__ = ['BankFile', 'from_stored', 'refitted_file', 'remove_stale_temps', 'save_atomic',
+           'stored_dtype']
 
 
 @dataclass(frozen=True)
@@ -62,16 +68,16 @@ class BankFile:
                 if _matches(bf.stored, bank.features) and (
                         bf.views is None or _matches(bf.views.stored, bank.views.features)):
                     return bf
-            except (OSError, KeyError, ValueError):
+            except (OSError, KeyError, ValueError, BankError):
                 pass
         return cls.of(bank)
 
     @classmethod
     def _with_file_values(cls, bank: FeatureBank) -> 'BankFile':
-        with np.load(bank.path, allow_pickle=False) as z:
-            stored = _unpacked(bank, z['features'])
-            views = None if bank.views is None else cls(
-                bank.views, _unpacked(bank.views, z['views_features']))
+        z = read_npz_bounded(bank.path)
+        stored = _unpacked(bank, z['features'])
+        views = None if bank.views is None else cls(
+            bank.views, _unpacked(bank.views, z['views_features']))
         return cls(bank, stored, views=views)
 
     @classmethod
@@ -107,15 +113,21 @@ class BankFile:
         return save_atomic(self, path)
 
 
-def save_atomic(bf: BankFile, path: str | os.PathLike[str]) -> Path:
+def save_atomic(bf: BankFile, path: str | os.PathLike[str], make_dirs: bool = True) -> Path:
     """Write the bank so a crash at any moment leaves either the old file or the new one.
 
     Serialised into a unique temporary file in the target directory, fsync'ed, renamed over
     `path`, then the directory fsync'ed (so the rename itself survives a power cut). The
     features written are `bf.stored` exactly, so loading the file gives `bf.bank` bit for bit.
+    Any failure removes the temporary files; those a killed process left for `path` are
+    removed first (`remove_stale_temps`). make_dirs=False: the folder must exist.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if make_dirs:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    elif not path.parent.is_dir():
+        raise FileNotFoundError(f'folder {path.parent} does not exist')
+    remove_stale_temps(path)
     tmp = path.with_name(f'.{path.name}.{os.getpid()}.{threading.get_ident():x}.tmp.npz')
     # Casting float32 copies of the stored values back to their dtype is exact.
     exact = replace(bf.bank, features=torch.from_numpy(bf.stored.astype(np.float32)))
@@ -136,6 +148,46 @@ def save_atomic(bf: BankFile, path: str | os.PathLike[str]) -> Path:
     finally:
         os.close(dir_fd)
     return path
+
+
+def remove_stale_temps(path: str | os.PathLike[str]) -> list[Path]:
+    """Remove the temporary files of `save_atomic(..., path)` whose process is gone.
+
+    `.<name>.<pid>.<thread>.tmp.npz` (and the `.tmp` that `FeatureBank.save` writes beside
+    it) are left only by a process killed mid-save (kill -9, power cut); a live process's
+    (another saver's) are kept. path: the bank file, or a folder (every bank in it).
+    -> the files removed.
+    """
+    path = Path(path)
+    folder, name = (path, None) if path.is_dir() else (path.parent, path.name)
+    removed = []
+    try:
+        candidates = list(folder.glob('.*.tmp.npz*'))
+    except OSError:
+        return removed
+    for tmp in candidates:
+        m = _TEMP_NAME.fullmatch(tmp.name)
+        if m is None or (name is not None and m['name'] != name):
+            continue
+        pid = int(m['pid'])
+        if pid != os.getpid() and _alive(pid):
+            continue
+        try:
+            tmp.unlink()
+            removed.append(tmp)
+        except OSError:
+            pass
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:           # another user's process: alive
+        return True
+    return True
 
 
 def refitted_file(bank: FeatureBank, stored: np.ndarray, moved: bool,

@@ -13,7 +13,9 @@ bank's own transform (and head whitening); what depends on the entries is refres
 Metadata added (JSON, in the bank file):
   bank_version   int, +1 per add/remove (0 = as built)
   enrollments    list of {version, action, class, count, time, source, near_duplicates}
-                 (+ examples, augment when an add stored each example in k frames)
+                 (+ examples, augment when an add stored each example in k frames); the
+                 last MAX_HISTORY (500) only
+  enrollments_compacted  how many older entries were dropped from `enrollments`
   augmented_entries  {class: entries beyond one per example} (augmented adds only; the
                  examples of a class = its entries minus this, see `example_counts`)
   vote_prior     {beta, classes}: the enrolled classes whose kernel vote gets a class-size
@@ -25,7 +27,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from datetime import datetime, UTC
-import copy
 from typing import Any, Literal
 
 import numpy as np
@@ -35,24 +36,30 @@ from point_gn_ros.bank.bank_file import (BankFile, from_stored, refitted_file, s
                                          stored_dtype)
 from point_gn_ros.bank.lda import wide_means_add, wide_means_remove
 from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, active_view,
-                                     example_counts, refit, vote_to_z)
+                                     copy_meta, example_counts, refit, vote_to_z)
 from point_gn_ros.bank.rows import append_rows
 from point_gn_ros.bank.store import FeatureBank, quantized
+from point_gn_ros.bank.validate import class_name_problem
 from point_gn_ros.bank.vote_prior import is_listed, with_listed, without
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.errors import PointGNError
 
 # At most this many near-duplicate pairs are listed (the count is always exact).
 _MAX_LISTED = 20
+# The metadata keeps the last MAX_HISTORY entries of `enrollments` (each at most ~800 bytes
+# with a 256-character class name and a MAX_SOURCE_CHARS source): ~0.4 MB at most, within
+# the 1 MB metadata limit of a loadable bank (bank/validate.py) beside the class names.
+MAX_HISTORY = 500
+MAX_SOURCE_CHARS = 200
 
 class EnrollError(PointGNError):
     """An enrollment request the bank cannot take (unknown class, wrong feature size...)."""
 
 
-__all__ = ['BankFile', 'EnrollError', 'EnrollResult', 'NearDuplicate', 'RefitError',
-           'RefitPolicy', 'active_view', 'add_examples', 'bank_version', 'class_counts',
-           'example_counts', 'near_duplicates', 'predictable', 'refit', 'remove_class',
-           'save_atomic']
+__all__ = ['BankFile', 'EnrollError', 'EnrollResult', 'MAX_HISTORY', 'NearDuplicate',
+           'RefitError', 'RefitPolicy', 'active_view', 'add_examples', 'bank_version',
+           'class_counts', 'example_counts', 'near_duplicates', 'predictable', 'refit',
+           'remove_class', 'save_atomic']
 
 
 @dataclass(frozen=True)
@@ -272,18 +279,32 @@ def _both_sections(op, bf: BankFile, *args: Any, when: datetime | None = None,  
 
 def _check_name(name: str) -> str:
     name = str(name).strip()
-    if not name or '\n' in name:
-        raise EnrollError(f'class name {name!r} must be non-empty and on one line')
+    problem = class_name_problem(name)      # the rule the bank is loaded with
+    if problem:
+        raise EnrollError(problem)
     return name
+
+
+def _clipped(text: str, limit: int) -> str:
+    """`text`, its middle elided when longer than `limit` (its start and end say the most)."""
+    if len(text) <= limit:
+        return text
+    head = (limit - 5) // 2
+    return f'{text[:head]} ... {text[-(limit - 5 - head):]}'
 
 
 def _log(bank: FeatureBank, action: str, class_name: str, count: int, source: str,
          when: datetime | None, **extra: Any) -> dict[str, Any]:
-    meta = copy.deepcopy(bank.meta)
+    meta = copy_meta(bank.meta)
     version = int(meta.get('bank_version', 0)) + 1
     meta['bank_version'] = version
     entry = {'version': version, 'action': action, 'class': class_name, 'count': int(count),
              'time': (when or datetime.now(UTC)).isoformat(timespec='seconds'),
-             'source': str(source), **extra}
-    meta['enrollments'] = [*meta.get('enrollments', []), entry]
+             'source': _clipped(str(source), MAX_SOURCE_CHARS), **extra}
+    history = [*meta.get('enrollments', []), entry]
+    if len(history) > MAX_HISTORY:         # compacted: the oldest entries are counted
+        meta['enrollments_compacted'] = (int(meta.get('enrollments_compacted', 0))
+                                         + len(history) - MAX_HISTORY)
+        history = history[-MAX_HISTORY:]
+    meta['enrollments'] = history
     return meta

@@ -25,7 +25,7 @@ from point_gn_ros.bank.enroll import (BankFile, EnrollResult, RefitPolicy, activ
 from point_gn_ros.bank import ridge
 from point_gn_ros.bank.rows import with_room
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.core.threads import name_os_thread
+from point_gn_ros.core.threads import lower_priority, name_os_thread, trim_heap
 
 Model = TypeVar('Model')
 log = logging.getLogger(__name__)
@@ -132,6 +132,7 @@ class LiveBank(Generic[Model]):
         changed meanwhile, the newer version is refitted instead.
         """
         name_os_thread()
+        lower_priority()          # a background refit: the threads that answer come first
         while True:
             snap = self._snap
             if not _pending(snap.file):
@@ -146,6 +147,8 @@ class LiveBank(Generic[Model]):
                 if self._snap is snap:
                     self._snap = published = self._snapshot(fitted, snap)
                     break
+            trim_heap()           # the refit's buffers: memory back to the OS
+        trim_heap()
         if self.on_refit is not None:
             try:
                 self.on_refit(published)
@@ -159,15 +162,15 @@ class LiveBank(Generic[Model]):
             self._snap = self._snapshot(self._snap.file)
         return self._snap
 
-    def save(self, path: str | os.PathLike[str]) -> tuple[Path, int]:
+    def save(self, path: str | os.PathLike[str], make_dirs: bool = True) -> tuple[Path, int]:
         """Atomically write the current version; -> (path, version written).
 
         Holds the writer lock so that no enrollment is lost between snapshot and write;
-        readers are not affected.
+        readers are not affected. make_dirs=False: the folder must exist.
         """
         with self._lock:
             snap = self._snap
-            return save_atomic(snap.file, path), snap.version
+            return save_atomic(snap.file, path, make_dirs), snap.version
 
     def _snapshot(self, file: BankFile, previous: Snapshot[Model] | None = None
                   ) -> Snapshot[Model]:

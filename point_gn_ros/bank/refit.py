@@ -113,6 +113,19 @@ class RefitPolicy:
             raise ValueError('min_examples must be >= 1 and folds >= 2')
 
 
+def copy_meta(meta: dict[str, Any]) -> dict[str, Any]:
+    """A deep copy of bank metadata, but the `enrollments` history's entries are shared.
+
+    History entries are never changed once written (bank/enroll.py): copying them on every
+    version would make n enrollments cost O(n^2).
+    """
+    history = meta.get('enrollments')
+    out = copy.deepcopy({k: v for k, v in meta.items() if k != 'enrollments'})
+    if history is not None:
+        out['enrollments'] = list(history)
+    return out
+
+
 def example_counts(bank: FeatureBank) -> torch.Tensor:
     """Examples per class (C,) int64: entries, less the extra frames of augmented enrollments.
 
@@ -199,7 +212,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
     """
     head = bank.head
     view = active_view(bank, policy.min_examples)
-    meta = copy.deepcopy(bank.meta)
+    meta = copy_meta(bank.meta)
     labels_all = view.labels.numpy()
     present = np.flatnonzero(np.bincount(labels_all, minlength=bank.num_classes) > 0)
     counts = example_counts(view).numpy()                 # examples, not augmented frames

@@ -49,7 +49,6 @@ log line saying so; `point_gn bank build` rebuilds them with the head.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
-import io
 import json
 import logging
 import os
@@ -72,7 +71,8 @@ from point_gn_ros.bank.half import HALF_MATRICES, decode_arrays, encode
 from point_gn_ros.bank.head_file import head_from_arrays
 from point_gn_ros.bank.objects import ObjectTest, PREFIX as OBJECTS_PREFIX
 from point_gn_ros.bank.rows import empty_rows
-from point_gn_ros.bank.validate import check_bank_arrays
+from point_gn_ros.bank.npz_read import read_npz_bounded
+from point_gn_ros.bank.validate import check_bank_arrays, check_meta_writable
 
 FORMAT_VERSION = 3
 # Written as version 2 when a bank has no views section and no int8/int4 features (older
@@ -187,13 +187,19 @@ class FeatureBank:
                 raise ValueError('a bank with a views section needs its gate')
             arrays.update({VIEWS_PREFIX + k: v for k, v in self.views._arrays(dtype).items()})
             arrays.update(self.gate.arrays())
+        for key in ('meta', VIEWS_PREFIX + 'meta'):
+            if key in arrays:                  # a file that would not load is not written
+                check_meta_writable(arrays[key])
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + '.tmp')
-        with open(tmp, 'wb') as f:
-            np.savez_compressed(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        try:
+            with open(tmp, 'wb') as f:
+                np.savez_compressed(f, **arrays)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)        # any failure (a full disk): no temp file left
         return path
 
     def _arrays(self, dtype: str, sectioned: bool = False, objects: bool = False
@@ -276,16 +282,10 @@ class FeatureBank:
             raise BankError(f'{path}: bank file not found')
         if not zipfile.is_zipfile(path):
             raise BankError(f'{path}: not a bank (.npz zip archive) file, or truncated')
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                missing = [k for k in _REQUIRED if k not in z.files]
-                if missing:
-                    raise BankError(f'{path}: not a point_gn bank (missing arrays {missing})')
-                arrays = {k: z[k] for k in z.files}
-        except BankError:
-            raise
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError, io.UnsupportedOperation) as exc:
-            raise BankError(f'{path}: unreadable or corrupt bank file ({exc})') from None
+        arrays = read_npz_bounded(path)   # sizes checked before anything is read
+        missing = [k for k in _REQUIRED if k not in arrays]
+        if missing:
+            raise BankError(f'{path}: not a point_gn bank (missing arrays {missing})')
         bank = cls._from_sections(path, arrays)
         if expected_config is not None:
             bank.check_config(expected_config)

@@ -127,6 +127,36 @@ def check_encoder_config(cfg: Mapping[str, Any]) -> str | None:
     return None
 
 
+def class_name_problem(name: str) -> str | None:
+    """Why one class name cannot be in a bank, or None: THE rule, at enrollment and at load.
+
+    A name is a non-empty single line (no line feed or carriage return: ``~/class_names``
+    is one name per line) of at most MAX_CLASS_NAME characters; anything else (unicode,
+    '/', '..', escape codes) is a valid name.
+    """
+    if not name.strip() or '\n' in name or '\r' in name or len(name) > MAX_CLASS_NAME:
+        shown = name if len(name) <= 60 else f'{name[:60]}... ({len(name):,} characters)'
+        return (f'class names must be non-empty single lines of at most {MAX_CLASS_NAME} '
+                f'characters, got {shown!r}')
+    return None
+
+
+def check_meta_writable(raw: np.ndarray) -> None:
+    """Raise ValueError unless metadata bytes about to be saved pass the load checks.
+
+    The limits `check_bank_arrays` applies at load (size, depth, class names), so that a
+    save that succeeds always gives a file that loads.
+    """
+    try:
+        meta = parse_meta(np.asarray(raw))
+    except ValueError as exc:
+        raise ValueError(f'not saved: {exc}') from None
+    names = meta.get('class_names') if isinstance(meta, dict) else None
+    problem = None if names is None else check_class_names(names)
+    if problem:
+        raise ValueError(f'not saved: {problem}')
+
+
 def check_class_names(names: Any) -> str | None:
     """The first problem of a class_names value, or None."""
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
@@ -135,11 +165,10 @@ def check_class_names(names: Any) -> str | None:
         return f'class_names must be a list of strings, got {got}'
     if not names:
         return 'class_names is empty'
-    bad = [n for n in names if not n.strip() or '\n' in n or '\r' in n
-           or len(n) > MAX_CLASS_NAME]
-    if bad:
-        return (f'class names must be non-empty single lines of at most {MAX_CLASS_NAME} '
-                f'characters, got {bad[0]!r}')
+    for n in names:
+        problem = class_name_problem(n)
+        if problem:
+            return problem
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
         return f'class names are not unique: {", ".join(dupes[:5])}'

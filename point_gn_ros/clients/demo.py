@@ -7,6 +7,11 @@ then as a single-view scan (only the side facing the sensor, noisy and sparser, 
 core/views.py), prints each answer (true label, prediction, score, end-to-end latency) and a
 summary for both kinds, then stops the node with Ctrl-C semantics (SIGINT). Needs nothing
 outside the package: no ../shared, no network.
+
+With --enrollment the node is started with `enable_enrollment:=true` (off by default: with
+it on, any peer on the ROS domain can change the bank) and, after the run, the demo teaches
+it one new class live: 5 scans of the first object published on ~/enroll_cloud under the
+name `my_<class>`, then 3 other scans of it are classified again.
 """
 
 from __future__ import annotations
@@ -48,7 +53,58 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--kinds', nargs='+', choices=KINDS, default=list(KINDS),
                    help='what to send of each object: the complete cloud, a single-view scan, '
                         'or both (default both)')
+    p.add_argument('--enrollment', action='store_true',
+                   help='start the node with enable_enrollment:=true and teach it one new '
+                        'class live after the run (docs/NODE.md "Enrollment")')
     return p
+
+
+TAUGHT = 'my_object'
+
+
+def _teach(client: Client, node: NodeLauncher, objects, rng: np.random.Generator,  # noqa: ANN001
+           timeout: float) -> bool:
+    """Teach the first demo object as a new class over ~/enroll_cloud; show the answers."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from point_gn_ros.clients.node_client import NODE_FQN
+    from point_gn_ros.pointcloud2 import decode_classifications
+    true = objects.class_names[int(objects.labels[0])]
+    pub = client.node.create_publisher(PointCloud2, f'{NODE_FQN}/enroll_cloud',
+                                       QoSProfile(depth=100,
+                                                  reliability=ReliabilityPolicy.RELIABLE))
+    if not client.spin_until(lambda: pub.get_subscription_count() > 0, timeout, node):
+        print('error: the node offers no ~/enroll_cloud (enable_enrollment)', file=sys.stderr)
+        return False
+    print(f'\nteaching: 5 scans of object #1 (a {true}) on {NODE_FQN}/enroll_cloud as '
+          f'{TAUGHT!r} (parameter enroll_class)')
+    from builtin_interfaces.msg import Time
+    from std_msgs.msg import Header
+
+    from point_gn_ros.pointcloud2 import xyz_to_pointcloud2
+    for i in range(5):
+        xyz = place_in_sensor_frame(objects.xyz[0], rng, yaw=float(rng.uniform(0, 6.28)),
+                                    single_view=True)
+        pub.publish(xyz_to_pointcloud2(Header(frame_id=FRAME, stamp=Time(sec=1, nanosec=i)),
+                                       xyz))
+    if not client.spin_until(lambda: TAUGHT in (client.class_names or []), timeout, node):
+        print(f'error: {TAUGHT!r} did not appear in ~/class_names', file=sys.stderr)
+        return False
+    names = client.class_names
+    print(f'{TAUGHT!r} is class {names.index(TAUGHT)} of {len(names)}; 3 other scans of it:')
+    for _ in range(3):
+        xyz = place_in_sensor_frame(objects.xyz[0], rng, yaw=float(rng.uniform(0, 6.28)),
+                                    single_view=True)
+        key, _ = client.send(xyz, FRAME)
+        if not client.spin_until(lambda k=key: k in client.answers, timeout, node):
+            print('  (no answer)')
+            return False
+        res = decode_classifications(client.answers[key].msg)
+        cid = int(res['class_id'][0])
+        print(f'  predicted {names[cid] if 0 <= cid < len(names) else "unknown"} '
+              f'{float(res["score"][0]):.2f}')
+    return True
 
 
 def _bank_num_points(bank: str) -> int:
@@ -77,9 +133,11 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f'starting the classifier node (ROS domain {domain}, bank '
           f"{args.bank or 'shipped default'}) ...", flush=True)
-    node = NodeLauncher({'bank_path': args.bank, 'num_points': num_points,
-                         'input_topics': [TOPIC], 'qos_reliability': 'reliable'},
-                        domain, passthrough=args.node_log)
+    params = {'bank_path': args.bank, 'num_points': num_points, 'input_topics': [TOPIC],
+              'qos_reliability': 'reliable'}
+    if args.enrollment:        # off by default: any peer on the domain could teach the node
+        params |= {'enable_enrollment': True, 'enroll_class': TAUGHT}
+    node = NodeLauncher(params, domain, passthrough=args.node_log)
     client = None
     try:
         client = Client(domain, TOPIC, reliable=True, name='point_gn_demo')
@@ -130,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f'latency p50 {p50:.1f} ms, p99 {p99:.1f} ms'
               + (f', {missing} unanswered' if missing else ''))
         ok = missing == 0 and node.alive()
+        if args.enrollment:
+            ok = _teach(client, node, objects, rng, args.timeout) and ok
     except KeyboardInterrupt:
         print('\ninterrupted')
         ok = False

@@ -123,8 +123,9 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         self._outputs: Outputs | None = None
         self._watchdog: InputWatchdog | None = None
         self._diagnostic_sources: list[Callable[[str], Any]] = []
-        for make in extensions:
-            self.add_managed_entity(make(self))
+        self._extensions = [make(self) for make in extensions]
+        for entity in self._extensions:
+            self.add_managed_entity(entity)
         self._warn_unknown_overrides()          # after the extensions declared theirs
 
     # ------------------------------------------------------------------ lifecycle
@@ -438,8 +439,14 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
     # ------------------------------------------------------------------ shutdown
 
     def destroy_node(self) -> None:
-        """Stop and join the worker before the publishers it uses go away."""
+        """Stop and join the worker before the publishers it uses go away.
+
+        Extensions with a `stop()` (enrollment) stop first: nothing they queued runs after.
+        """
         self._active = False
+        for entity in self._extensions:
+            if callable(getattr(entity, 'stop', None)):
+                entity.stop()
         self._stop_intake()
         self._stop_worker()
         super().destroy_node()

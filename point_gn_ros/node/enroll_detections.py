@@ -19,12 +19,14 @@ __all__ = ['StampPairing', 'crop_box']
 class StampPairing:
     """Matches detection arrays with scene clouds of the identical header stamp.
 
-    Either may arrive first; one left alone longer than `timeout_s` is discarded and counted
-    in `expired`. Thread-safe.
+    Either may arrive first; one left alone longer than `timeout_s`, or pushed out as the
+    oldest of more than `max_waiting` on its side, is discarded and counted in `expired`.
+    Thread-safe.
     """
 
-    def __init__(self, timeout_s: float) -> None:
+    def __init__(self, timeout_s: float, max_waiting: int = 16) -> None:
         self.timeout_s = timeout_s
+        self.max_waiting = max_waiting
         self.expired = 0
         self._waiting: tuple[dict, dict] = ({}, {})      # detections, scenes: key -> (t, msg)
         self._lock = threading.Lock()
@@ -42,7 +44,11 @@ class StampPairing:
                     self.expired += 1
             other = self._waiting[1 - side].pop(key, None)
             if other is None:
-                self._waiting[side][key] = (now, msg)
+                mine = self._waiting[side]
+                mine[key] = (now, msg)
+                while len(mine) > self.max_waiting:      # insertion order: oldest first
+                    del mine[next(iter(mine))]
+                    self.expired += 1
                 return []
         return [(msg, other[1]) if side == 0 else (other[1], msg)]
 

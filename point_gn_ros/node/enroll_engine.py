@@ -10,13 +10,20 @@ Threads and who does what:
 - one committer thread applies every change in order (add, remove, save): the refit and the
   copy-on-write bank build (bank/enroll.py) run there, then `on_change(snapshot, result)`
   hands the new version to the node, which swaps it in between two micro-batches.
+  Consecutive adds of one class from one source are committed as one version.
+
+Bounds: `pending()` counts every example from `submit` until it is committed (or dropped),
+at most `max_pending`; one call takes at most `max_examples`; the bank holds at most
+`max_classes` classes; at most MAX_SERVICE_OPS forget / save requests wait, more are
+answered "busy" at once. `close()` drops whatever waits (one log line) and never waits
+more than CLOSE_WAIT_S for the change in progress, which is then not published.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Hashable, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor, TimeoutError as FutureTimeout
+from concurrent.futures import Future, TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 import os
 import threading
@@ -28,13 +35,20 @@ import torch
 
 from point_gn_ros.bank.enroll import EnrollError, EnrollResult
 from point_gn_ros.bank.live import LiveBank, Snapshot
+from point_gn_ros.bank.validate import class_name_problem
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.core.fusion import with_fused
-from point_gn_ros.core.threads import name_os_thread
+from point_gn_ros.core.threads import lower_priority, name_os_thread, trim_heap
 from point_gn_ros.errors import PointGNError
 
 # How long a service waits for the committer (forget, save) before answering "still running".
 SERVICE_TIMEOUT_S = 30.0
+# Forget / save requests waiting for the committer at most; more are answered "busy".
+MAX_SERVICE_OPS = 4
+# At shutdown, how long close() lets the committer finish the change it is applying.
+CLOSE_WAIT_S = 1.0
+# The committer's changes that services ask for (bounded by MAX_SERVICE_OPS).
+_SERVICE_KINDS = ('remove', 'save')
 
 
 @dataclass
@@ -48,6 +62,20 @@ class _Request:
     feats: list[torch.Tensor] = field(default_factory=list)
     encoded: int = 0
     fuse: bool = False                 # views of one object: fused on the worker first
+
+
+@dataclass
+class _Op:
+    """One change for the committer: add (encoded requests), remove, save or flush."""
+
+    kind: str
+    reqs: list[_Request] = field(default_factory=list)
+    args: tuple[Any, ...] = ()
+    future: Future | None = None
+
+    @property
+    def examples(self) -> int:
+        return sum(len(r.clouds) for r in self.reqs)
 
 
 @dataclass
@@ -75,26 +103,33 @@ class EnrollEngine:
     def __init__(self, live: LiveBank, on_change: Callable[[Snapshot, EnrollResult], None],
                  log: Callable[[str], object], warn: Callable[[Hashable, str], object],
                  chunk: int = 32, max_pending: int = 512, capture_max: int = 200,
-                 min_points: int = 16, augment: str = 'none', fuse_views: bool = False) -> None:
+                 min_points: int = 16, augment: str = 'none', fuse_views: bool = False,
+                 max_classes: int = 256, max_examples: int = 200) -> None:
         self.live = live
         self.augment, self.fuse_views = augment, fuse_views
         self.chunk = max(1, chunk // variants_per_example(augment))
         self.max_pending = max_pending
+        self.max_classes, self.max_examples = max_classes, max_examples
         self.capture_max, self.min_points = capture_max, min_points
         self._on_change, self._log, self._warn = on_change, log, warn
-        self._lock = threading.Lock()
+        self._lock = threading.Condition()   # requests, ops, pending, capture, closed
         self._count_lock = threading.Lock()
         self._requests: deque[_Request] = deque()
+        self._ops: deque[_Op] = deque()
+        self._service_ops = 0
         self._pending = 0
+        self._closed = False
         self._capture: _Capture | None = None
-        self._committer = ThreadPoolExecutor(max_workers=1, thread_name_prefix='point_gn_enroll',
-                                             initializer=name_os_thread)
-        self.counters = {'enrolled': 0, 'enrollments': 0, 'refused': 0, 'near_duplicates': 0,
-                         'removed_classes': 0, 'saves': 0, 'errors': 0, 'fused': 0,
-                         'not_fused': 0}
+        self._committer = threading.Thread(target=self._commit_loop, name='point_gn_enroll',
+                                           daemon=True)
+        self.counters = {'enrolled': 0, 'enrollments': 0, 'refused': 0, 'dropped': 0,
+                         'near_duplicates': 0, 'removed_classes': 0, 'saves': 0, 'busy': 0,
+                         'errors': 0, 'fused': 0, 'not_fused': 0}
+        self.refused_by: dict[str, int] = {}      # reason -> examples refused
         self.last_latency_s = float('nan')
         self.last_save: tuple[str, int] | None = None
         self.last_error = ''
+        self._committer.start()
 
     # ------------------------------------------------------------------ producers
 
@@ -106,30 +141,52 @@ class EnrollEngine:
         request of its own, fused on the worker before it is encoded.
         """
         name = class_name.strip()
-        if not name:
-            return self.refuse(len(clouds), 'empty class name')
+        problem = class_name_problem(name)        # the rule the saved bank is loaded with
+        if problem:
+            return self.refuse(len(clouds), problem, 'class_name')
+        if len(clouds) > self.max_examples:
+            self.refuse(len(clouds) - self.max_examples, f'one request of {name[:60]!r} '
+                        f'holds {len(clouds)} examples, max {self.max_examples}', 'per_call')
+            clouds = clouds[:self.max_examples]
         small = [len(c) for c in clouds if len(c) < self.min_points]
         clouds = [c for c in clouds if len(c) >= self.min_points]
         if small:
-            self.refuse(len(small), f'{len(small)} example(s) of {name!r} have fewer than '
-                                     f'min_points={self.min_points} points')
+            self.refuse(len(small), f'{len(small)} example(s) of {name[:60]!r} have fewer '
+                                     f'than min_points={self.min_points} points', 'too_few_points')
         if not clouds:
             return False, 'no usable example'
         with self._lock:
-            if self._pending + len(clouds) > self.max_pending:
-                pending = self._pending
+            if self._closed:
+                why, reason = 'the node is shutting down', 'shutting_down'
+            elif self._pending + len(clouds) > self.max_pending:
+                why, reason = (f'{self._pending} examples already waiting (max '
+                               f'{self.max_pending})'), 'queue_full'
+            elif not self._room_for(name):
+                why, reason = (f'{name[:60]!r} would be a new class beyond '
+                               f'enroll_max_classes={self.max_classes}'), 'class_limit'
             else:
                 last = self._requests[-1] if self._requests else None
                 if not fuse and last is not None and not last.fuse and \
-                        last.class_name == name and last.source == source:
+                        last.class_name == name and last.source == source and \
+                        len(last.clouds) + len(clouds) <= self.max_examples:
                     # Examples streaming in (one per message): one enrollment, one version.
                     last.clouds.extend(clouds)
                 else:
                     self._requests.append(_Request(name, list(clouds), source, fuse=fuse))
                 self._pending += len(clouds)
                 return True, f'{len(clouds)} example(s) of {name!r} queued'
-        return self.refuse(len(clouds), f'{pending} examples already waiting (max '
-                                         f'{self.max_pending})')
+        return self.refuse(len(clouds), why, reason)
+
+    def _room_for(self, name: str) -> bool:
+        """Whether `name` fits the class cap with every class already waiting (locked)."""
+        names = self.live.current().class_names
+        if name in names:
+            return True
+        waiting = {r.class_name for r in self._requests}
+        waiting.update(r.class_name for op in self._ops for r in op.reqs)
+        if name in waiting:
+            return True
+        return len(names) + len(waiting - set(names)) < self.max_classes
 
     def start_capture(self, class_name: str, topics: frozenset[int] | None) -> tuple[bool, str]:
         name = class_name.strip()
@@ -157,8 +214,11 @@ class EnrollEngine:
         return self._wait(self.forget_later(class_name, source))
 
     def forget_later(self, class_name: str, source: str) -> Future:
-        """Queue the removal of a class on the committer -> Future of (ok, message)."""
-        return self._committer.submit(self._remove, class_name.strip(), source)
+        """Queue the removal of a class on the committer -> Future of (ok, message).
+
+        Answered at once with (False, 'busy ...') when MAX_SERVICE_OPS already wait.
+        """
+        return self._service_op('remove', class_name.strip(), source)
 
     def save(self, path: str) -> tuple[bool, str]:
         """Atomically write the current version to path (in order with commits); waits."""
@@ -167,10 +227,24 @@ class EnrollEngine:
     def save_later(self, path: str) -> Future:
         """Queue an atomic save of the current version -> Future of (ok, message)."""
         if not path:
-            done: Future = Future()
-            done.set_result((False, 'set the save_bank_path parameter first'))
-            return done
-        return self._committer.submit(self._save, path)
+            return _done(False, 'set the save_bank_path parameter first')
+        return self._service_op('save', path)
+
+    def _service_op(self, kind: str, *args: Any) -> Future:
+        with self._lock:
+            if self._closed:
+                return _done(False, 'the node is shutting down')
+            if self._service_ops >= MAX_SERVICE_OPS:
+                busy = self._service_ops
+            else:
+                fut: Future = Future()
+                self._service_ops += 1
+                self._ops.append(_Op(kind, args=args, future=fut))
+                self._lock.notify_all()
+                return fut
+        self._count('busy', 1)
+        return _done(False, f'busy: {busy} forget/save requests are waiting (max '
+                            f'{MAX_SERVICE_OPS}); try again later')
 
     # ------------------------------------------------------------------ worker hooks
 
@@ -190,7 +264,7 @@ class EnrollEngine:
         Returns whether there is more to do. A finished request goes to the committer.
         """
         with self._lock:
-            if not self._requests:
+            if not self._requests or self._closed:
                 return False
             req = self._requests[0]
             todo = req.clouds[req.encoded:req.encoded + self.chunk]
@@ -204,13 +278,13 @@ class EnrollEngine:
             return bool(self._requests)
         with self._lock:          # submit() may still be extending this request
             req.encoded += len(todo)
-            done = req.encoded >= len(req.clouds)
-            if done:
+            if req.encoded >= len(req.clouds) and self._requests and \
+                    self._requests[0] is req:
+                # Still pending (counted) until committed: the committer takes it in order.
                 self._requests.popleft()
-                self._pending -= len(req.clouds)
-        if done:
-            self._committer.submit(self._commit, req)
-        return bool(self._requests)
+                self._ops.append(_Op('add', [req]))
+                self._lock.notify_all()
+            return bool(self._requests)
 
     def _fuse(self, req: _Request) -> None:
         """Worker: a capture's views and what fusing them adds (one step of its own)."""
@@ -229,23 +303,76 @@ class EnrollEngine:
 
     # ------------------------------------------------------------------ committer
 
-    def _commit(self, req: _Request) -> None:
+    def _commit_loop(self) -> None:
+        """Committer thread: apply the queued changes in order until closed."""
+        name_os_thread()
+        lower_priority()          # refits yield the CPU to the worker's answers
+        while True:
+            with self._lock:
+                while not self._ops and not self._closed:
+                    self._lock.wait()
+                if self._closed:
+                    return
+                op = self._ops.popleft()
+                while op.kind == 'add' and self._ops and self._ops[0].kind == 'add' and \
+                        self._ops[0].reqs[0].class_name == op.reqs[0].class_name and \
+                        self._ops[0].reqs[0].source == op.reqs[0].source:
+                    op.reqs += self._ops.popleft().reqs     # one version for a stream
+                if op.kind in _SERVICE_KINDS:
+                    self._service_ops -= 1
+            try:
+                result = self._apply(op)
+            except Exception as exc:  # noqa: BLE001 - the committer must outlive one change
+                self.report_error(f'enrollment {op.kind} failed: {type(exc).__name__}: {exc}')
+                result = (False, f'{op.kind} failed: {type(exc).__name__}: {exc}')
+            finally:
+                if op.kind == 'add':
+                    with self._lock:
+                        self._pending -= op.examples
+            if op.future is not None and not op.future.done():
+                op.future.set_result(result)
+            if op.kind in ('add', 'remove'):
+                trim_heap()       # the versions it replaced: memory back to the OS
+
+    def _apply(self, op: _Op) -> tuple[bool, str]:
+        if op.kind == 'add':
+            self._commit(op.reqs)
+            return True, ''
+        if op.kind == 'remove':
+            return self._remove(*op.args)
+        if op.kind == 'save':
+            return self._save(*op.args)
+        return True, ''                           # flush
+
+    def _commit(self, reqs: list[_Request]) -> None:
+        req = reqs[0]
+        n = sum(len(r.clouds) for r in reqs)
+        if self._closed:
+            return
+        if req.class_name not in self.live.current().class_names and \
+                len(self.live.current().class_names) >= self.max_classes:
+            self.refuse(n, f'{req.class_name[:60]!r} would be a new class beyond '
+                           f'enroll_max_classes={self.max_classes}', 'class_limit')
+            return
+        source = req.source if len(reqs) == 1 else f'{req.source} ({len(reqs)} requests)'
         try:
-            res = self.live.add(torch.cat(req.feats), req.class_name, req.source,
-                                augment=self.augment)
+            res = self.live.add(torch.cat([f for r in reqs for f in r.feats]), req.class_name,
+                                source, augment=self.augment)
         except (EnrollError, PointGNError, ValueError) as exc:
-            self.report_error(f'enrollment of {req.class_name!r} refused: {exc}')
+            self.report_error(f'enrollment of {req.class_name[:60]!r} refused: {exc}')
             return
         except Exception as exc:  # noqa: BLE001 - the committer must outlive one request
-            self.report_error(f'enrollment of {req.class_name!r} failed: '
+            self.report_error(f'enrollment of {req.class_name[:60]!r} failed: '
                               f'{type(exc).__name__}: {exc}')
             return
+        if self._closed:
+            return                # shut down meanwhile: not published, not logged
         self.last_latency_s = time.monotonic() - req.received
         self._count('enrolled', res.examples)
         self._count('enrollments', 1)
         self._count('near_duplicates', res.duplicate_count)
         self._changed(res)
-        self._log(f'{res.describe()} in {self.last_latency_s:.2f} s ({req.source})')
+        self._log(f'{res.describe()} in {self.last_latency_s:.2f} s ({source})')
         if res.duplicate_count:
             pairs = '; '.join(f'#{d.index} ~ {d.other} ({d.cosine:.4f})'
                               for d in res.duplicates[:5])
@@ -266,7 +393,7 @@ class EnrollEngine:
     def _save(self, path: str) -> tuple[bool, str]:
         t0 = time.monotonic()
         try:
-            written, version = self.live.save(path)
+            written, version = self.live.save(path, make_dirs=False)   # no new folders
         except (OSError, PointGNError, ValueError) as exc:
             self.report_error(f'saving the bank to {path} failed: {exc}')
             return False, f'saving to {path} failed: {exc}'
@@ -277,6 +404,8 @@ class EnrollEngine:
         return True, text
 
     def _changed(self, res: EnrollResult) -> None:
+        if self._closed:
+            return                # shut down: the node's publishers are going away
         try:
             self._on_change(self.live.current(), res)
         except Exception as exc:  # noqa: BLE001 - the bank changed; reporting it must not undo it
@@ -294,11 +423,50 @@ class EnrollEngine:
 
     def flush(self, timeout: float = SERVICE_TIMEOUT_S) -> None:
         """Wait until every change handed to the committer so far is applied."""
-        self._committer.submit(lambda: None).result(timeout)
+        fut: Future = Future()
+        with self._lock:
+            if self._closed:
+                return
+            self._ops.append(_Op('flush', future=fut))
+            self._lock.notify_all()
+        fut.result(timeout)
+
+    def set_log(self, log: Callable[[str], object]) -> None:
+        """Another info sink (the node's logger is gone once its context is shut down)."""
+        self._log = log
 
     def close(self) -> None:
-        """Finish queued commits (bounded by their own work) and stop the committer."""
-        self._committer.shutdown(wait=True, cancel_futures=True)
+        """Stop now: drop what waits (one log line), wait at most CLOSE_WAIT_S, publish nothing.
+
+        A change the committer is applying when this is called is abandoned unpublished if
+        it does not finish within CLOSE_WAIT_S (the committer is a daemon thread).
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            reqs = list(self._requests) + [r for op in self._ops for r in op.reqs]
+            waiting = [op for op in self._ops if op.future is not None]
+            self._requests.clear()
+            self._ops.clear()
+            self._capture = None
+            dropped = sum(len(r.clouds) for r in reqs)
+            self._pending -= dropped
+            self._lock.notify_all()
+        for op in waiting:
+            if not op.future.done():
+                op.future.set_result((False, 'the node is shutting down: not done'))
+        services = [op for op in waiting if op.kind in _SERVICE_KINDS]
+        if dropped or services:
+            self._count('dropped', dropped)
+            self._log(f'enrollment stopped: {dropped} pending example(s) of '
+                      f'{len({r.class_name for r in reqs})} class(es) dropped, '
+                      f'{len(services)} forget/save request(s) not done')
+        if threading.current_thread() is not self._committer:
+            self._committer.join(CLOSE_WAIT_S)
+            if self._committer.is_alive():
+                self._log(f'enrollment: the change in progress did not finish within '
+                          f'{CLOSE_WAIT_S:g} s; it is abandoned (not published)')
 
     def _wait(self, fut: Future) -> tuple[bool, str]:
         try:
@@ -311,13 +479,14 @@ class EnrollEngine:
             if self._requests and self._requests[0] is req:
                 self._requests.popleft()
                 self._pending -= len(req.clouds)
-        self.refuse(len(req.clouds), f'{req.class_name!r}: {why}')
+        self.refuse(len(req.clouds), f'{req.class_name[:60]!r}: {why}', 'encoding_failed')
 
-    def refuse(self, count: int, why: str) -> tuple[bool, str]:
-        """Count `count` refused examples and warn (rate-limited per reason)."""
+    def refuse(self, count: int, why: str, reason: str = 'other') -> tuple[bool, str]:
+        """Count `count` refused examples under `reason` and warn (rate-limited per reason)."""
         self._count('refused', count)
-        self._warn(('refused', why.split(':')[0]),
-                   f'enrollment: {count} example(s) refused: {why}')
+        with self._count_lock:
+            self.refused_by[reason] = self.refused_by.get(reason, 0) + count
+        self._warn(('refused', reason), f'enrollment: {count} example(s) refused: {why}')
         return False, why
 
     def _count(self, key: str, n: int) -> None:
@@ -329,3 +498,9 @@ class EnrollEngine:
         self._count('errors', 1)
         self.last_error = text
         self._warn(('error',), text)
+
+
+def _done(ok: bool, message: str) -> Future:
+    fut: Future = Future()
+    fut.set_result((ok, message))
+    return fut

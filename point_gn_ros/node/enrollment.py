@@ -1,5 +1,10 @@
 """Live enrollment interfaces of the classifier node: parameters, topics, services, swaps.
 
+Off unless the read-only parameter ``enable_enrollment`` is true: then, and only then, the
+node creates the topics and services below. ROS 2 topics and services are unauthenticated
+without SROS2, so with enrollment on ANY peer on the domain can teach, forget and save
+(docs/NODE.md "Enrollment"; SROS2 access control restricts who may).
+
 Standard interfaces only (no custom message package), all in the node's private namespace:
 
 * ``~/enroll`` (vision_msgs/Detection3DArray) + ``~/enroll_scene`` (sensor_msgs/PointCloud2),
@@ -15,8 +20,16 @@ Standard interfaces only (no custom message package), all in the node's private 
   ``capture_max``); stop enrolls them under ``enroll_class`` (with ``enroll_fuse_views``,
   as views of one object in one fixed frame: their fused cloud and 8 scans of it too);
 * ``~/forget`` (std_srvs/Trigger): removes the class named by ``enroll_class``;
-* ``~/save_bank`` (std_srvs/Trigger): writes the current bank to ``save_bank_path``
-  atomically (temporary file, fsync, rename): a crash leaves the previous file whole.
+* ``~/save_bank`` (std_srvs/Trigger): writes the current bank atomically (temporary file,
+  fsync, rename: a crash leaves the previous file whole) to ``save_bank_path`` (read-only,
+  set at start), or, when that is an existing folder, to the file named by
+  ``save_bank_name`` inside it (a plain ``*.npz`` name: no folders, no ``..``, not hidden).
+
+Bounds (node/enroll_engine.py): clouds over ``max_points_per_message``, bad class names,
+classes beyond ``enroll_max_classes``, examples beyond ``enroll_max_examples`` per request
+or ``enroll_max_pending`` waiting are refused and counted by reason; forget / save requests
+beyond a few waiting are answered "busy"; the worker encodes enrollment examples only when
+no input waits (at least one step a second); shutdown drops what waits.
 
 Every change makes a new bank version (copy-on-write, bank/enroll.py) that the worker picks
 up between two micro-batches (Pipeline.update): each answer is computed with one version.
@@ -30,11 +43,15 @@ are in node/enroll_detections.py.
 from __future__ import annotations
 
 from concurrent.futures import Future
+import time
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from pathlib import Path
+
+import rclpy.logging
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.lifecycle import ManagedEntity, TransitionCallbackReturn
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future as RclpyFuture
@@ -42,6 +59,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from point_gn_ros.bank.debias import MAX_BUDGET, MAX_SHARE
+from point_gn_ros.bank.bank_file import remove_stale_temps
 from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
 from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.bank.refit import LDA_PRIORS, MAX_VOTE_PRIOR
@@ -58,14 +76,42 @@ except ImportError:          # a ROS install without vision_msgs: PointCloud2 ro
 
 # A detection array waits this long for the scene cloud of the same stamp (and vice versa).
 PAIR_TIMEOUT_S = 5.0
-_WRITABLE = ('enroll_class', 'save_bank_path', 'capture_topic')
+# Detection arrays (and scene clouds) waiting for their partner at most; older ones expire.
+PAIR_MAX_WAITING = 16
+# Requests a service's DDS reader keeps before it is served (KEEP_LAST): a burst of up to
+# this many calls is taken, each answered (done, or "busy" at once).
+SERVICE_QUEUE_DEPTH = 100
+# Enrollment examples the worker encodes in one step at most (a query arriving meanwhile
+# waits for them): a few, so that a step costs a fraction of a micro-batch.
+ENROLL_CHUNK = 8
+# While input waits, the worker still takes one enrollment step at least this often.
+ENROLL_STEP_MIN_S = 1.0
+_WRITABLE = ('enroll_class', 'save_bank_name', 'capture_topic')
 
 # name -> (default, description, extra ParameterDescriptor kwargs); the writable ones are read
 # each time a service is called, the others once at start.
 ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
+    'enable_enrollment': (False, 'Create the enrollment topics and services (~/enroll, '
+                                 '~/enroll_scene, ~/enroll_cloud, ~/start_capture, '
+                                 '~/stop_capture, ~/forget, ~/save_bank). Any peer on the '
+                                 'ROS domain can then change the bank: use SROS2 access '
+                                 'control on a shared graph. Default false: no peer can.', {}),
     'enroll_class': ('', 'Class that ~/enroll_cloud, ~/start_capture and ~/forget act on '
                          '(settable at run time).', {}),
-    'save_bank_path': ('', 'File ~/save_bank writes (atomically); settable at run time.', {}),
+    'save_bank_path': ('', "File ~/save_bank writes (atomically), or an existing folder: "
+                           "then the file save_bank_name in it. '' = no saves. Set at start "
+                           'only; the node creates no folders.', {}),
+    'save_bank_name': ('bank.npz', 'With save_bank_path a folder: the file ~/save_bank writes '
+                                   'in it (a plain *.npz name: no folders, no "..", not '
+                                   'hidden); settable at run time.', {}),
+    'enroll_max_classes': (256, 'Classes the bank may hold at most (built + enrolled); an '
+                                'example of a further new class is refused.',
+                           {'integer_range': [IntegerRange(from_value=1, to_value=4096,
+                                                           step=1)]}),
+    'enroll_max_examples': (200, "Examples one request (a message, a detection array's "
+                                 'class, a capture) enrolls at most; the rest are refused.',
+                            {'integer_range': [IntegerRange(from_value=1, to_value=100_000,
+                                                            step=1)]}),
     'capture_topic': ('', "Input topic ~/start_capture takes objects from; '' = every input "
                           'topic (settable at run time).', {}),
     'min_examples_per_class': (1, 'A class is predicted only once it has this many examples.',
@@ -104,7 +150,8 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                                "'mirror', 'rot4' or 'd4' (8 entries per example: the frames "
                                'the yaw alignment confuses on partial scans).',
                        {'additional_constraints': "one of 'none', 'mirror', 'rot4', 'd4'"}),
-    'enroll_max_pending': (512, 'Examples waiting to be encoded at most; beyond, refused.',
+    'enroll_max_pending': (512, 'Examples waiting (to be encoded or committed) at most; '
+                                'beyond, refused and counted.',
                            {'integer_range': [IntegerRange(from_value=1, to_value=100_000,
                                                            step=1)]}),
     'enroll_fuse_views': (False, 'A capture (~/start_capture .. ~/stop_capture) holds views '
@@ -134,17 +181,23 @@ class Enrollment(ManagedEntity):
             name, default, ParameterDescriptor(description=text,
                                                read_only=name not in _WRITABLE, **extra)).value
             for name, (default, text, extra) in ENROLL_PARAMETERS.items()}
+        self.enabled = bool(self.values['enable_enrollment'])
         self.live: LiveBank | None = None
         self.engine: EnrollEngine | None = None
         self._pipeline: Any = None
         self._subs: list[Any] = []
         self._services: list[Any] = []
+        self._save_base: tuple[Path, bool] | None = None    # (path, is a folder)
+        self._last_step = 0.0
         node.add_diagnostic_source(self.diagnostic_status)
 
     # ------------------------------------------------------------------ lifecycle
 
     def on_configure(self, state: Any) -> TransitionCallbackReturn:
         node, log = self.node, self.node.get_logger()
+        if not self.enabled:
+            log.info('enrollment is off (enable_enrollment false): no peer can change the bank')
+            return TransitionCallbackReturn.SUCCESS
         gamma = self.values['enroll_refit_gamma']
         if gamma not in ('auto', 'keep', 'cv'):
             log.error(f'parameter enroll_refit_gamma={gamma!r} must be one of auto, keep, cv')
@@ -178,30 +231,72 @@ class Enrollment(ManagedEntity):
         # The node's worker (node/pipeline.py) calls these between and inside micro-batches.
         self._pipeline = node._pipeline
         self.engine = EnrollEngine(
-            self.live, self._swap, log.info, node._warn, chunk=node.settings.max_batch,
+            self.live, self._swap, log.info, node._warn,
+            chunk=min(node.settings.max_batch, ENROLL_CHUNK),
             max_pending=self.values['enroll_max_pending'],
             capture_max=self.values['capture_max'], min_points=node.settings.min_points,
-            augment=augment, fuse_views=bool(self.values['enroll_fuse_views']))
+            augment=augment, fuse_views=bool(self.values['enroll_fuse_views']),
+            max_classes=self.values['enroll_max_classes'],
+            max_examples=self.values['enroll_max_examples'])
         self._pipeline.observe = self._observe
         self._pipeline.between_batches = self._between_batches
+        self._save_base = self._configure_save_target()
+        log.warning('enrollment is on: ANY peer on this ROS domain can teach, forget and save '
+                    '(enable_enrollment); restrict who may with SROS2 access control on a '
+                    'shared graph')
         return TransitionCallbackReturn.SUCCESS
+
+    def _configure_save_target(self) -> tuple[Path, bool] | None:
+        """save_bank_path, resolved once; the temporary files of a killed save removed."""
+        text = str(self.values['save_bank_path'] or '').strip()
+        if not text:
+            return None
+        path = Path(text).expanduser().absolute()
+        folder = path.is_dir()
+        log = self.node.get_logger()
+        if not folder and not path.parent.is_dir():
+            log.warning(f'save_bank_path {path}: folder {path.parent} does not exist (the '
+                        f'node creates none): ~/save_bank will fail')
+        for tmp in remove_stale_temps(path):
+            log.info(f'removed {tmp}, left by an interrupted save')
+        return path, folder
+
+    def save_target(self) -> tuple[Path | None, str]:
+        """The file ~/save_bank writes now -> (path, '') or (None, why not)."""
+        if self._save_base is None:
+            return None, ('no save_bank_path: set it (a file, or a folder with save_bank_name) '
+                          'at start')
+        base, folder = self._save_base
+        if not folder:
+            return base, ''
+        name = self._param('save_bank_name')
+        problem = save_name_problem(name)
+        if problem:
+            return None, f'save_bank_name {name[:80]!r}: {problem}'
+        return base / name, ''
 
     def on_activate(self, state: Any) -> TransitionCallbackReturn:
         node = self.node
+        if not self.enabled:
+            return TransitionCallbackReturn.SUCCESS
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
         self._subs = [node.create_subscription(PointCloud2, '~/enroll_cloud',
                                                self._on_cloud, qos)]
         if Detection3DArray is not None:
-            self._pairing = StampPairing(PAIR_TIMEOUT_S)
+            self._pairing = StampPairing(PAIR_TIMEOUT_S, PAIR_MAX_WAITING)
             self._subs += [
                 node.create_subscription(Detection3DArray, '~/enroll', self._on_detections, qos),
                 node.create_subscription(PointCloud2, '~/enroll_scene', self._on_scene, qos)]
         # Services that wait for a save or a refit are coroutines (see _finished): they never
-        # hold up the input callbacks of the node's single-threaded executor.
-        group = MutuallyExclusiveCallbackGroup()
+        # hold up the input callbacks of the node's single-threaded executor, nor (reentrant
+        # group) the next request: each is taken at once, and answered done or "busy".
+        group = ReentrantCallbackGroup()
+        srv_qos = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                             history=HistoryPolicy.KEEP_LAST)
         self._services = [
-            node.create_service(Trigger, f'~/{name}', handler, callback_group=group)
+            node.create_service(Trigger, f'~/{name}', handler, qos_profile=srv_qos,
+                                callback_group=group)
             for name, handler in (('start_capture', self._start_capture),
                                   ('stop_capture', self._stop_capture),
                                   ('forget', self._forget), ('save_bank', self._save_bank))]
@@ -240,9 +335,18 @@ class Enrollment(ManagedEntity):
 
     def _release(self) -> None:
         self._destroy_interfaces()
-        if self.engine is not None:
-            self.engine.close()
+        self.stop()
         self.engine = self.live = self._pipeline = None
+
+    def stop(self) -> None:
+        """Stop enrolling now (node shutdown): pending work dropped, nothing published after."""
+        if self.live is not None:
+            self.live.on_refit = None
+        if self.engine is not None:
+            if not self.node.context.ok():     # /rosout is gone: a console-only logger
+                self.engine.set_log(rclpy.logging.get_logger(
+                    f'{self.node.get_name()}.shutdown').info)
+            self.engine.close()
 
     def _make_model(self, bank: Any, previous: Any = None) -> Any:
         """A recognizer for one bank version, sharing the node's encoder.
@@ -264,6 +368,13 @@ class Enrollment(ManagedEntity):
                 self.engine.observe(job.item.topic_index, job.model_clouds())
 
     def _between_batches(self) -> bool:
+        """Worker: one enrollment step, unless input waits (answers first, but one a second)."""
+        queue = getattr(self.node, '_queue', None)
+        now = time.monotonic()
+        if queue is not None and any(queue.depths()) and now - self._last_step < \
+                ENROLL_STEP_MIN_S:
+            return False
+        self._last_step = now
         try:
             return self.engine is not None and self.engine.step(self._pipeline.recognizer)
         except Exception as exc:  # noqa: BLE001 - the worker must outlive enrollment bugs
@@ -289,12 +400,15 @@ class Enrollment(ManagedEntity):
         if self._pairing.expired:
             n, self._pairing.expired = self._pairing.expired, 0
             self.engine.refuse(n, f'{n} detection array(s) or scene cloud(s) found no partner '
-                                   f'with the same stamp within {PAIR_TIMEOUT_S:g} s')
+                                   f'with the same stamp within {PAIR_TIMEOUT_S:g} s',
+                               'unpaired')
         for dets, scene in pairs:
             try:
-                xyz = decode_xyz(scene, allow_empty=True).xyz
+                xyz = decode_xyz(scene, max_points=self._max_points(),
+                                 allow_empty=True).xyz
             except DecodeError as exc:
-                self.engine.refuse(len(dets.detections), f'scene cloud not decodable: {exc}')
+                self.engine.refuse(len(dets.detections), f'scene cloud not decodable: {exc}',
+                                   _decode_reason(exc))
                 continue
             rot = self._pipeline.frame_rotation(scene.header.frame_id)
             per_class: dict[str, list] = {}
@@ -307,7 +421,7 @@ class Enrollment(ManagedEntity):
                 per_class.setdefault(label, []).append(to_z_up(crop_box(xyz, det.bbox), rot))
             if unlabelled:
                 self.engine.refuse(unlabelled, 'detection without results[0].hypothesis.'
-                                                'class_id')
+                                                'class_id', 'unlabelled')
             for label, clouds in per_class.items():
                 self.engine.submit(label, clouds, '~/enroll')
 
@@ -316,9 +430,10 @@ class Enrollment(ManagedEntity):
 
         name = self._param('enroll_class')
         try:
-            xyz = decode_xyz(msg, allow_empty=True).xyz
+            xyz = decode_xyz(msg, max_points=self._max_points(), allow_empty=True).xyz
         except DecodeError as exc:
-            self.engine.refuse(1, f'~/enroll_cloud message not decodable: {exc}')
+            self.engine.refuse(1, f'~/enroll_cloud message not decodable: {exc}',
+                               _decode_reason(exc))
             return
         rot = self._pipeline.frame_rotation(msg.header.frame_id)
         self.engine.submit(name, [to_z_up(xyz, rot)], '~/enroll_cloud')
@@ -350,8 +465,13 @@ class Enrollment(ManagedEntity):
                                                                                 '~/forget')))
 
     async def _save_bank(self, request: Any, response: Any) -> Any:
-        path = self._param('save_bank_path')
-        return _answer(response, *await self._finished(self.engine.save_later(path)))
+        path, why = self.save_target()
+        if path is None:
+            return _answer(response, False, why)
+        return _answer(response, *await self._finished(self.engine.save_later(str(path))))
+
+    def _max_points(self) -> int:
+        return int(self.node.settings.max_points_per_message)
 
     async def _finished(self, fut: Future) -> tuple[bool, str]:
         """The committer's (ok, message), awaited without holding the executor.
@@ -375,7 +495,8 @@ class Enrollment(ManagedEntity):
         """`<node>: enrollment` status: bank version, class counts, enrollment counters."""
         if self.live is None:
             return DiagnosticStatus(level=DiagnosticStatus.OK, name=f'{node_name}: enrollment',
-                                    message='not configured')
+                                    message='not configured' if self.enabled else
+                                    'off (enable_enrollment false)')
         values = self.diagnostic_values()
         eng = self.engine
         level, message = DiagnosticStatus.OK, f'bank v{values["bank_version"]}'
@@ -399,11 +520,37 @@ class Enrollment(ManagedEntity):
         if eng is not None:
             out |= {'enroll_pending': eng.pending(), 'capturing': eng.capturing() or 'no',
                     **{f'enroll_{k}': v for k, v in eng.counters.items()},
+                    **{f'enroll_refused.{k}': v for k, v in sorted(eng.refused_by.items())},
                     'enroll_last_latency_s': f'{eng.last_latency_s:.3f}',
                     'last_save': (f'v{eng.last_save[1]} {eng.last_save[0]}' if eng.last_save
                                   else 'none')}
         out |= {f'count.{name}': n for name, n in counts.items()}
         return out
+
+
+def _decode_reason(exc: DecodeError) -> str:
+    """The refusal counter of an enrollment cloud the codec refused."""
+    return 'too_many_points' if str(exc).startswith('too many points') else 'undecodable'
+
+
+def save_name_problem(name: str) -> str | None:
+    """Why `name` cannot be the file ~/save_bank writes in the save folder, or None.
+
+    A plain file name: no folder part, no '..', not hidden, ending in .npz, printable.
+    """
+    if not name:
+        return 'empty'
+    if len(name) > 128:
+        return 'longer than 128 characters'
+    if '/' in name or '\\' in name or name in ('.', '..') or Path(name).name != name:
+        return 'must be a plain file name (no folder, no "..")'
+    if name.startswith('.'):
+        return 'must not be hidden (start with ".")'
+    if not name.isprintable():
+        return 'must be printable'
+    if not name.endswith('.npz') or name == '.npz':
+        return 'must end with .npz'
+    return None
 
 
 def _answer(response: Any, ok: bool, message: str) -> Any:
