@@ -41,6 +41,7 @@ def _node(context: LaunchContext) -> list:
     arg = lambda name: LaunchConfiguration(name).perform(context)  # noqa: E731
     params: list = [arg('params_file')]
     overrides = {'autostart': arg('autostart').lower() == 'true',
+                 'allow_parameter_changes': arg('allow_parameter_changes').lower() == 'true',
                  'use_sim_time': arg('use_sim_time').lower() == 'true'}
     if arg('bank_path'):
         overrides['bank_path'] = arg('bank_path')
@@ -85,6 +86,8 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument('qos_reliability', default_value='',
                               description="input QoS: auto, reliable, best_effort ('' = "
                                           "params file's)"),
+        DeclareLaunchArgument('allow_parameter_changes', default_value='false',
+                              description='let ros2 param set change the live parameters'),
         DeclareLaunchArgument('autostart', default_value='true',
                               description='walk the lifecycle to active by itself'),
         DeclareLaunchArgument('use_sim_time', default_value='false',

@@ -141,7 +141,7 @@ def test_ros2_launch_and_cli_control(colcon_install: Path, small_bank_path: Path
     launch = subprocess.Popen(
         [sys.executable, '-c', _SIGINT_DEFAULT_EXEC, 'ros2', 'launch', 'point_gn_ros',
          'classifier.launch.py', 'namespace:=robot', f'bank_path:={bank}',
-         'input_topics:=[launch_objects]'],
+         'input_topics:=[launch_objects]', 'allow_parameter_changes:=true'],
         stdout=log, stderr=subprocess.STDOUT, env=env)
     node = '/robot/point_gn_classifier'
     harness = Harness('launch_test')

@@ -64,6 +64,15 @@ def _graph(h: Harness, fqn: str) -> tuple[set[str], set[str]]:
     return subs, srvs
 
 
+def _set_any(h: Harness, fqn: str, name: str, value: object) -> tuple[bool, str]:
+    """Set a parameter of node `fqn` as any peer would -> (successful, reason)."""
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+    req = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+    result = h.call(SetParameters, f'{fqn}/set_parameters', req, 10.0, resend_s=5.0).results[0]
+    return result.successful, result.reason
+
+
 def test_a_peer_cannot_change_a_default_node(harness: Harness, tiny_bank: Path,
                                             tmp_path: Path) -> None:
     """Re-teach airplane as chair, forget lamp, aim saves at a file and at new folders."""
@@ -92,6 +101,10 @@ def test_a_peer_cannot_change_a_default_node(harness: Harness, tiny_bank: Path,
         for key, value in (('save_bank_path', str(files / 'notes.txt')),
                            ('save_bank_path', str(tmp_path / 'new' / 'dirs' / 'b.npz'))):
             ok, reason = p.try_set_param(key, value)
+            assert not ok and 'read-only' in reason.lower(), reason
+        # Nor can a peer change the answers through the live parameters (not enabled).
+        for key, value in (('unknown_threshold', 0.99), ('top_k', 1)):
+            ok, reason = _set_any(harness, fqn, key, value)
             assert not ok and 'read-only' in reason.lower(), reason
         pub = harness.node.create_publisher(PointCloud2, f'{fqn}/enroll_cloud',
                                             reliable_qos(100))

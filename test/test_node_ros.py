@@ -33,7 +33,7 @@ def node(tiny_bank: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[
     proc = NodeProcess({'bank_path': str(tiny_bank), 'num_points': TEST_NUM_POINTS,
                         'input_topics': [TOPIC, SILENT], 'autostart': False,
                         'queue_size': 64, 'qos_depth': 64, 'input_timeout_s': INPUT_TIMEOUT_S,
-                        'unkown_threshold': 0.5},
+                        'unkown_threshold': 0.5, 'allow_parameter_changes': True},
                        tmp_path_factory.mktemp('node') / 'node.log',
                        params_file=REPO / 'config' / 'classifier.yaml', node_name=NODE_FQN[1:])
     try:

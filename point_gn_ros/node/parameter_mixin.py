@@ -29,7 +29,9 @@ class ParameterMixin:
         return bool(self.get_parameter('autostart').value)
 
     def _declare_parameters(self) -> None:
-        for name, (default, desc) in descriptors().items():
+        # Whether the live parameters are writable is itself fixed at start (an override).
+        allow = self._parameter_overrides.get('allow_parameter_changes')
+        for name, (default, desc) in descriptors(bool(allow and allow.value)).items():
             self.declare_parameter(name, default, desc)
         # Per-topic settings (params.topic_settings) exist only where given: each override
         # named topics.<key>.<setting> is declared as given, checked at configure.

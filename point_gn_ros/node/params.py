@@ -89,6 +89,7 @@ class Settings:
     autostart: bool = True
     search: str = 'auto'
     object_test: bool = True
+    allow_parameter_changes: bool = False
     no_segment_ids: tuple[str, ...] = ('negative', 'max')
     # One per input topic (same order): its own segment field, up axis and QoS.
     topics: tuple[TopicSettings, ...] = ()
@@ -195,6 +196,10 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                           'Banks without one (format < 6): no effect.', {}),
     'autostart': (True, 'Walk the lifecycle to active at start (configure + activate), as a '
                         'plain node; false = wait for a lifecycle manager.', {}),
+    'allow_parameter_changes': (False, 'Let `ros2 param set` (any peer on the ROS domain: '
+                                       'parameter services are unauthenticated without SROS2) '
+                                       'change the live parameters while the node runs; '
+                                       'false = every parameter is fixed at start.', {}),
 }
 
 QOS_CHOICES = ('auto', 'reliable', 'best_effort')
@@ -297,11 +302,15 @@ def resolve_unknown_threshold(bank: Any, value: float) -> float | None:
     return float(calib['threshold'])
 
 
-def descriptors() -> dict[str, tuple[Any, ParameterDescriptor]]:
-    """Name -> (default, ParameterDescriptor) for declaring every parameter; LIVE ones writable."""
+def descriptors(allow_changes: bool = False) -> dict[str, tuple[Any, ParameterDescriptor]]:
+    """Name -> (default, ParameterDescriptor) for declaring every parameter.
+
+    allow_changes: the LIVE ones are writable (`allow_parameter_changes`); else all read-only.
+    """
     out = {}
     for name, (default, description, extra) in PARAMETERS.items():
-        desc = ParameterDescriptor(description=description, read_only=name not in LIVE, **extra)
+        desc = ParameterDescriptor(description=description,
+                                   read_only=not (allow_changes and name in LIVE), **extra)
         if isinstance(default, list):   # an explicit type, so that [] would still be valid
             desc.type = ParameterType.PARAMETER_STRING_ARRAY
         out[name] = (default, desc)
