@@ -18,6 +18,7 @@ from point_gn_ros.bank.classifier import Classification, Classifier
 from point_gn_ros.core.augment import Augment, yaw_variants
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.sampling import ResampleMethod, prepare
+from point_gn_ros.core.size import size_descriptors
 
 
 class Encoder(Protocol):
@@ -103,20 +104,25 @@ class Recognizer:
                  top_k: int = 5, unknown_threshold: float | None = None,
                  encoder: Encoder | None = None, threads: int | None = None,
                  search: str = 'auto', previous: 'Recognizer | None' = None,
-                 object_test: bool = True) -> None:
+                 object_test: bool = True, metric_size: bool = True,
+                 fit_threshold: float | None = None) -> None:
         """Encoder + classifier for one bank.
 
         search: the classifier's bank search, 'auto', 'exact' or 'indexed'
         (bank/classifier.py; 'auto' indexes large banks once, here); previous: the
         recognizer of the bank version this one follows (its index is extended, not rebuilt);
-        object_test: apply the bank's object test to taught classes (bank/objects.py).
+        object_test: apply the bank's object test to taught classes (bank/objects.py);
+        metric_size: the clouds are in metres, z up: their size (core/size.py) is evidence
+        (bank/taught.py); False for inputs without metric meaning (unit-sphere data);
+        fit_threshold: shape-and-size fit below which a cloud is unknown (None: no such rule).
         """
         self.bank = bank
         self.encoder = encoder or make_encoder(bank.config, device, threads=threads)
         bank.check_config(self.encoder.cfg)
         self.classifier = Classifier(bank, device, unknown_threshold, search=search,
                                      previous=None if previous is None else previous.classifier,
-                                     object_test=object_test)
+                                     object_test=object_test, fit_threshold=fit_threshold)
+        self.metric_size = metric_size
         self.resample = resample
         self.top_k = top_k
 
@@ -158,7 +164,11 @@ class Recognizer:
         if not clouds:
             return self.classifier.classify(torch.zeros(0, self.encoder.cfg.feature_dim),
                                             self.top_k)
-        return self.classifier.classify(self.encode(clouds), self.top_k)
+        return self.classifier.classify(self.encode(clouds), self.top_k, self.sizes(clouds))
+
+    def sizes(self, clouds: Sequence[np.ndarray]) -> np.ndarray | None:
+        """(B, SIZE_DIM) metric log sizes (core/size.py); None without metric_size."""
+        return size_descriptors(list(clouds)) if self.metric_size else None
 
     def classify_later(self, clouds: Sequence[np.ndarray]) -> Callable[[], Classification]:
         """`classify_clouds(clouds)` in two parts: started now, finished by the returned call.
@@ -175,4 +185,5 @@ class Recognizer:
         cfg = self.encoder.cfg
         batch = np.stack([_prepared(c, cfg, self.resample, 0) for c in clouds])
         features = start(torch.from_numpy(batch))
-        return lambda: self.classifier.classify(features(), self.top_k)
+        sizes = self.sizes(clouds)
+        return lambda: self.classifier.classify(features(), self.top_k, sizes)
