@@ -47,6 +47,7 @@ RANGE_TAU = float(np.log(1.5))      # log-size distance outside a range per unit
 # The node's default unknown rule: fit below this is unknown (docs/SIZE.md: chosen on the
 # tabletop set's leave-one-class-out folds, checked on blobs, scenes and garbage).
 DEFAULT_FIT_THRESHOLD = 0.0
+FIT_OFF = -10.0        # a fit threshold at or below this: no fit rule
 MAX_PLAUS = 50.0       # plausibility floor (-MAX_PLAUS): one absurd size does not swamp all
 KEY = 'taught'
 _PRIOR_FILE = Path(__file__).resolve().parents[1] / 'data' / 'size_prior.json'
@@ -63,6 +64,27 @@ def size_prior() -> dict[str, np.ndarray]:
         hi = np.log([r[d][1] * RANGE_HIGH for d in _PRIOR_DIMS])
         out[name] = np.stack([lo, hi], axis=1)
     return out
+
+
+def fit_rule(threshold: float) -> float | None:
+    """A node / CLI fit threshold -> the classifier's (None: off, at or below FIT_OFF)."""
+    return None if threshold <= FIT_OFF else float(threshold)
+
+
+def plausible_scale(xyz: np.ndarray, class_name: str) -> float:
+    """Factor that gives a unit-sphere object of `class_name` a typical real size.
+
+    xyz: (N, 3) z up. The geometric mean of (middle of the prior's height range / height)
+    and (middle of its length range / horizontal extent); 1.0 for a class without a prior.
+    """
+    raw = json.loads(_PRIOR_FILE.read_text())['classes'].get(class_name)
+    p = np.asarray(xyz, dtype=np.float64)
+    if raw is None or len(p) < 2:
+        return 1.0
+    h = max(float(np.ptp(p[:, 2])), 1e-6)
+    ln = max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])), 1e-6)
+    want_h, want_l = np.sqrt(np.prod(raw['height'])), np.sqrt(np.prod(raw['length']))
+    return float(np.sqrt(want_h / h * want_l / ln))
 
 
 # ------------------------------------------------------------------ bank metadata (JSON)

@@ -94,9 +94,13 @@ def _eval(args: argparse.Namespace) -> int:
         return _eval_open_set(args)
     bank = FeatureBank.load(args.bank)
     ds = open_dataset_from_args(args)
-    if list(ds.class_names) != list(bank.class_names):
-        raise DatasetError(f"{ds.path}: class names differ from the bank's "
+    # A bank enlarged by enrollment may hold more classes than the data set: its labels are
+    # mapped to the bank's ids, and answers with the extra classes count as wrong.
+    missing = sorted(set(ds.class_names) - set(bank.class_names))
+    if missing:
+        raise DatasetError(f"{ds.path}: classes the bank lacks: {', '.join(missing[:10])} "
                            f'({len(ds.class_names)} vs {len(bank.class_names)} classes)')
+    true = np.array([bank.class_names.index(ds.class_names[int(y)]) for y in ds.labels])
     enc = make_encoder(bank.config, args.device)
     source = ds
     if args.single_view:
@@ -111,7 +115,7 @@ def _eval(args: argparse.Namespace) -> int:
     clf = Classifier(bank, args.device, args.unknown_threshold, gamma=args.gamma,
                      search=args.search)
     res = clf.classify(torch.as_tensor(feats), top_k=1)
-    report = accuracy_report(ds.labels, res.labels, bank.class_names)
+    report = accuracy_report(true, res.labels, bank.class_names)
     report.update(bank=str(bank.path), dataset=str(ds.path), split=ds.split,
                   gamma=clf.gamma, search=clf.search_kind, random_yaw_seed=args.random_yaw,
                   single_view_seed=args.seed if args.single_view else None,

@@ -32,8 +32,14 @@ def size_descriptor(xyz: np.ndarray) -> np.ndarray:
     if len(p) < 2:
         return np.full(SIZE_DIM, np.log(SIZE_FLOOR))
     z_lo, z_hi = np.percentile(p[:, 2], (_LO, _HI))
-    xy = p[:, :2] - p[:, :2].mean(axis=0)
-    _, vecs = np.linalg.eigh(xy.T @ xy)
+    xy = p[:, :2] - np.median(p[:, :2], axis=0)
+    # the horizontal axes from the points inside the per-axis percentile box: a stray point
+    # must not turn them
+    lo_xy, hi_xy = np.percentile(xy, (_LO, _HI), axis=0)
+    inner = xy[((xy >= lo_xy) & (xy <= hi_xy)).all(axis=1)]
+    inner = inner if len(inner) >= 2 else xy
+    inner = inner - inner.mean(axis=0)
+    _, vecs = np.linalg.eigh(inner.T @ inner)
     along = xy @ vecs[:, ::-1]                        # major axis first
     lo, hi = np.percentile(along, (_LO, _HI), axis=0)
     c = p - p.mean(axis=0)
