@@ -59,14 +59,14 @@ def test_taught_block_is_redivided_by_prototype_and_size_and_built_classes_by_th
     small, big = np.log([0.1, 0.1, 0.1, 0.03, 0.03, 0.03]), np.log([1.0, 1.0, 1.0, .3, .3, .3])
     meta = add_taught({}, 'thing_a', torch.nn.functional.normalize(torch.eye(4)[[2, 2]], dim=1),
                       np.stack([small, small]))
-    meta = add_taught(meta, 'thing_b', torch.nn.functional.normalize(torch.eye(4)[[3]], dim=1),
-                      big[None])
+    meta = add_taught(meta, 'thing_b', torch.nn.functional.normalize(
+        torch.tensor([[0.0, 0.0, 1.0, 0.2]]), dim=1), big[None])
     assert meta[KEY]['thing_a']['n'] == 2 and meta[KEY]['thing_a']['sn'] == 2
     layer = _layer(json.loads(json.dumps(meta)), names)      # survives the JSON round trip
     assert layer.active and sorted(layer.taught.tolist()) == [2, 3]
     prob = torch.full((1, 4), 0.25)
-    z = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0, 1.0]]), dim=1)
-    # same shape cosine to both taught classes: the size decides
+    z = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0, 0.1]]), dim=1)
+    # nearly the same shape cosine to both taught classes: the size decides
     p_small, _ = layer.apply(prob, z, small[None])
     p_big, _ = layer.apply(prob, z, big[None])
     assert p_small[0, 2] > 0.9 * (p_small[0, 2] + p_small[0, 3])
@@ -75,9 +75,13 @@ def test_taught_block_is_redivided_by_prototype_and_size_and_built_classes_by_th
     assert p_small[0, 0] > 10 * p_small[0, 1]
     # without sizes the taught block is re-divided by the prototypes only, built ones kept
     p_none, fit = layer.apply(prob, torch.nn.functional.normalize(
-        torch.tensor([[0.0, 0.0, 1.0, 0.2]]), dim=1), None)
+        torch.tensor([[0.0, 0.0, 1.0, -0.2]]), dim=1), None)
     assert p_none[0, 2] > p_none[0, 3] and torch.allclose(p_none[0, :2], prob[0, :2])
     assert fit.shape == (1,)
+    # a query unlike every taught mean keeps the head's division of the taught block
+    head = torch.tensor([[0.1, 0.1, 0.2, 0.6]])
+    p_far, _ = layer.apply(head, torch.eye(4)[[0]], None)
+    assert torch.allclose(p_far, head, atol=1e-3)
 
 
 @pytest.fixture(scope='module')

@@ -9,6 +9,8 @@ probabilities (B, C) after the head, in two ways:
                 share the head's total probability on them, p_T, re-divided among them by
                 softmax(KAPPA cos(z, m_c) + W plaus_c): m_c the mean of the class's taught
                 rows z (the main section's transformed unit rows), cos the cosine to it;
+                mixed with the head's own division by a gate that opens as the query's best
+                cosine to a taught mean passes GATE_COS (built-class queries keep the head's);
   size          every class whose size is known gets W plaus_c on its log-probability:
                 taught classes: -1/2 sum_d (s_d - mu_d)^2 / var_d over the measured log sizes
                 of its taught examples (var shrunk towards PRIOR_VAR with PRIOR_COUNT pseudo
@@ -40,6 +42,8 @@ from point_gn_ros.core.size import SIZE_DIM
 
 KAPPA = 10.0           # shape: logit per unit cosine to a taught class mean
 W_SIZE = 1.0           # size: weight of the plausibility on the log-probability
+GATE_COS = 0.75        # the prototypes re-divide p_T for queries whose best cosine to a
+GATE_SLOPE = 10.0      # taught mean passes GATE_COS (logistic gate of this slope)
 PRIOR_VAR = 0.02       # taught classes' log-size variance prior (sd ~14 %) ...
 PRIOR_COUNT = 3.0      # ... worth this many examples
 RANGE_LOW, RANGE_HIGH = 0.5, 1.25   # prior ranges relaxed: a partial view shows less
@@ -231,7 +235,12 @@ class TaughtLayer:
             if plaus is not None:
                 s = s + self.w_size * plaus[:, self.taught]
             p_t = _logsumexp(logp[:, self.taught])
-            logp[:, self.taught] = p_t[:, None] + s - _logsumexp(s)[:, None]
+            # a query unlike every taught mean keeps the head's division (gate -> 0): the
+            # prototypes must not concentrate p_t on one taught class for a built-class query
+            gate = 1.0 / (1.0 + np.exp(-GATE_SLOPE * (cos_t.max(1) - GATE_COS)))[:, None]
+            share = gate * np.exp(s - _logsumexp(s)[:, None]) \
+                + (1.0 - gate) * np.exp(logp[:, self.taught] - p_t[:, None])
+            logp[:, self.taught] = p_t[:, None] + np.log(np.maximum(share, 1e-300))
         if plaus is not None:
             built = np.setdiff1d(np.arange(logp.shape[1]), self.taught)
             logp[:, built] += self.w_size * plaus[:, built]
