@@ -127,3 +127,72 @@ def test_fewshot_bank_runs_the_teach_and_query_protocol(tmp_path: Path, capsys) 
         assert 0.0 <= summ[key]['mean'] <= 1.0, key
     # three distinct objects, sizes in metres: taught they are told apart
     assert summ['accuracy']['mean'] >= 0.8
+
+
+def test_bank_add_keeps_measured_sizes_in_metres_and_none_without_units(
+        small_bank_path: Path, tmp_path: Path) -> None:
+    from point_gn_ros.bank.enroll import BankFile
+    from point_gn_ros.cli import main
+    rng = np.random.default_rng(3)
+    folder = tmp_path / 'carton'
+    folder.mkdir()
+    for i in range(3):                           # a 10 x 5 x 20 cm carton, anywhere
+        np.save(folder / f'{i}.npy', _box(rng, (0.1, 0.05, 0.2), 600) + rng.normal(size=3))
+    out_m, out_none = tmp_path / 'm.npz', tmp_path / 'none.npz'
+    assert main(['bank', 'add', str(small_bank_path), str(folder), '--class', 'carton',
+                 '-o', str(out_m)]) == 0
+    rec = BankFile.load(out_m).bank.meta[KEY]['carton']
+    assert rec['n'] == 3 and rec['sn'] == 3
+    assert np.allclose(np.exp(rec['smean'][:3]), [0.2 * 0.96, 0.1 * 0.96, 0.05 * 0.96],
+                       rtol=0.1)
+    assert main(['bank', 'add', str(small_bank_path), str(folder), '--class', 'carton',
+                 '--units', 'none', '-o', str(out_none)]) == 0
+    rec = BankFile.load(out_none).bank.meta[KEY]['carton']
+    assert rec['n'] == 3 and 'sn' not in rec
+
+
+def test_node_enrollment_engine_keeps_the_recognizers_measured_sizes(tmp_path: Path) -> None:
+    from point_gn_ros.bank.enroll import BankFile
+    from point_gn_ros.bank.live import LiveBank
+    from point_gn_ros.bank.store import FeatureBank
+    from point_gn_ros.bank.transform import FeatureTransform
+    from point_gn_ros.core.config import EncoderConfig
+    from point_gn_ros.core.size import size_descriptors
+    from point_gn_ros.node.enroll_engine import EnrollEngine
+
+    dim = EncoderConfig().feature_dim
+
+    class Rec:                                   # the Recognizer's encode / sizes contract
+        def __init__(self, metric: bool) -> None:
+            self.metric = metric
+
+        def encode(self, clouds: list[np.ndarray], augment: str = 'none') -> torch.Tensor:
+            return torch.stack([torch.full((dim,), float(c[0, 0])) + torch.arange(dim)
+                                for c in clouds])
+
+        def sizes(self, clouds: list[np.ndarray]) -> np.ndarray | None:
+            return size_descriptors(clouds) if self.metric else None
+
+    raw = torch.randn(12, dim, generator=torch.Generator().manual_seed(0))
+    tf = FeatureTransform.fit(raw, 'none')
+    bank = FeatureBank(features=tf(raw), labels=torch.arange(12) % 3, class_names=['a', 'b', 'c'],
+                       config=EncoderConfig(), transform=tf, gamma=10.0)
+    rng = np.random.default_rng(4)
+    clouds = [_box(rng, (0.3, 0.1, 0.5), 200) for _ in range(5)]
+    for metric in (True, False):
+        live = LiveBank(BankFile.of(bank, 'float32'), lambda active: active.num_classes)
+        eng = EnrollEngine(live, lambda snap, res: None, log=lambda text: None,
+                           warn=lambda key, text: None, chunk=2, max_pending=100,
+                           capture_max=5, min_points=4)
+        assert eng.submit('bin', clouds, 'test')[0]
+        while eng.step(Rec(metric)):              # three steps of <= 2 clouds
+            pass
+        eng.flush(10.0)
+        rec = live.current().bank.meta[KEY]['bin']
+        eng.close()
+        assert rec['n'] == 5
+        if metric:
+            assert rec['sn'] == 5 and np.allclose(rec['smean'],
+                                                  size_descriptors(clouds).mean(0), atol=1e-5)
+        else:
+            assert 'sn' not in rec

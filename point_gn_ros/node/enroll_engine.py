@@ -46,6 +46,7 @@ class _Request:
     source: str
     received: float = field(default_factory=time.monotonic)
     feats: list[torch.Tensor] = field(default_factory=list)
+    sizes: list[np.ndarray | None] = field(default_factory=list)  # (n, SIZE_DIM) or None
     encoded: int = 0
     fuse: bool = False                 # views of one object: fused on the worker first
 
@@ -199,6 +200,7 @@ class EnrollEngine:
             return True
         try:
             req.feats.append(recognizer.encode(todo, augment=self.augment))
+            req.sizes.append(recognizer.sizes(todo))  # metric size (core/size.py) or None
         except Exception as exc:  # noqa: BLE001 - one bad example costs its request only
             self._drop_head(req, f'encoding failed: {type(exc).__name__}: {exc}')
             return bool(self._requests)
@@ -231,8 +233,9 @@ class EnrollEngine:
 
     def _commit(self, req: _Request) -> None:
         try:
+            sizes = None if any(s is None for s in req.sizes) else np.concatenate(req.sizes)
             res = self.live.add(torch.cat(req.feats), req.class_name, req.source,
-                                augment=self.augment)
+                                augment=self.augment, sizes=sizes)
         except (EnrollError, PointGNError, ValueError) as exc:
             self.report_error(f'enrollment of {req.class_name!r} refused: {exc}')
             return
