@@ -92,6 +92,8 @@ class Classification:
     partial: np.ndarray | None = None    # (B,) gate's p(single-view scan); two-section banks
     fit: np.ndarray | None = None        # (B,) shape-and-size fit to the nearest class
                                          # (bank/taught.py); None when the layer did not run
+    volumetric: np.ndarray | None = None  # (B,) share of volumetric neighbourhoods
+                                          # (core/surface.py); None without the volume rule
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])

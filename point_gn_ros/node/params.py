@@ -49,6 +49,7 @@ class Settings:
     object_test: bool = True
     metric_size: bool = True
     fit_threshold: float = 0.0
+    volume_threshold: float = 0.8
 
 
 def _int_range(lo: int, hi: int) -> list[IntegerRange]:
@@ -138,6 +139,11 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                            'class is below it (bank/taught.py): garbage decodes and clouds of a '
                            'size no class has; -10 = off (docs/SIZE.md for the trade-off).',
                       {'floating_point_range': _float_range(-10.0, 1.0)}),
+    'volume_threshold': (0.8, "Unknown (class_id -1) when more than this share of the cloud's "
+                              'local neighbourhoods is volumetric (core/surface.py): a volume of '
+                              'random points, not a view of surfaces; 1.0 = off '
+                              '(docs/SIZE.md for the trade-off).',
+                         {'floating_point_range': _float_range(0.0, 1.0)}),
     'autostart': (True, 'Walk the lifecycle to active at start (configure + activate), as a '
                         'plain node; false = wait for a lifecycle manager.', {}),
 }
