@@ -24,7 +24,7 @@ exactly as it is (ModelNet40 figures unchanged).
 Fit (for the unknown rule): max_c (cos(z, m_c) + W / KAPPA plaus_c) over every class with a
 mean (built classes: the mean of their bank rows, size from the prior) -- how like its
 nearest class the query is in shape and size. Knobs chosen by CV on the tabletop set
-(scripts/size_fewshot_study.py, docs/SIZE.md).
+(scripts/size_knob_study.py, docs/SIZE.md).
 """
 
 from __future__ import annotations
@@ -159,6 +159,7 @@ class TaughtLayer:
     ranges: np.ndarray
     kappa: float = KAPPA
     w_size: float = W_SIZE
+    gate_cos: float = GATE_COS
 
     @classmethod
     def build(cls, meta: dict[str, Any], class_names: list[str], z_rows: torch.Tensor,
@@ -237,7 +238,7 @@ class TaughtLayer:
             p_t = _logsumexp(logp[:, self.taught])
             # a query unlike every taught mean keeps the head's division (gate -> 0): the
             # prototypes must not concentrate p_t on one taught class for a built-class query
-            gate = 1.0 / (1.0 + np.exp(-GATE_SLOPE * (cos_t.max(1) - GATE_COS)))[:, None]
+            gate = 1.0 / (1.0 + np.exp(-GATE_SLOPE * (cos_t.max(1) - self.gate_cos)))[:, None]
             share = gate * np.exp(s - _logsumexp(s)[:, None]) \
                 + (1.0 - gate) * np.exp(logp[:, self.taught] - p_t[:, None])
             logp[:, self.taught] = p_t[:, None] + np.log(np.maximum(share, 1e-300))
