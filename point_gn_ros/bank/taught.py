@@ -41,7 +41,7 @@ import torch
 from point_gn_ros.core.size import SIZE_DIM
 
 KAPPA = 10.0           # shape: logit per unit cosine to a taught class mean
-W_SIZE = 1.0           # size: weight of the plausibility on the log-probability
+W_SIZE = 0.5           # size: weight of the plausibility on the log-probability
 GATE_COS = 0.75        # the prototypes re-divide p_T for queries whose best cosine to a
 GATE_SLOPE = 10.0      # taught mean passes GATE_COS (logistic gate of this slope)
 PRIOR_VAR = 0.02       # taught classes' log-size variance prior (sd ~14 %) ...
