@@ -123,8 +123,10 @@ def test_fewshot_bank_runs_the_teach_and_query_protocol(tmp_path: Path, capsys) 
     summ = rep['summary']
     assert rep['metric_size'] and rep['shots'] == 3 and len(rep['per_draw']) == 2
     for key in ('accuracy', 'built_share', 'nearest_mean', 'geometry', 'auroc_fit',
-                'auroc_top_probability', 'unseen_rejected', 'taught_rejected'):
+                'auroc_top_probability', 'unseen_rejected', 'taught_rejected',
+                'volume_rejected'):
         assert 0.0 <= summ[key]['mean'] <= 1.0, key
+    assert summ['volume_rejected']['mean'] == 0.0        # real views are surfaces
     # three distinct objects, sizes in metres: taught they are told apart
     assert summ['accuracy']['mean'] >= 0.8
 

@@ -74,6 +74,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument('--fit-threshold', type=float, default=None, metavar='F',
                    help='--bank: the unknown rule whose reject rates are reported (default: '
                         "the node's default, bank/taught.py DEFAULT_FIT_THRESHOLD)")
+    f.add_argument('--volume-threshold', type=float, default=None, metavar='V',
+                   help='--bank: the volume rule counted in the reject rates (default: the '
+                        "node's, core/surface.py DEFAULT_VOLUME_THRESHOLD; 1 = off)")
     f.set_defaults(func=_fewshot)
 
 
@@ -239,6 +242,8 @@ def _teach(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD
     from point_gn_ros.commands.common import open_dataset_from_args
     from point_gn_ros.core.size import size_descriptors
+    from point_gn_ros.core.surface import (DEFAULT_VOLUME_THRESHOLD, volume_rule,
+                                           volumetric_shares)
     from point_gn_ros.evaluation.teach import run_teach_protocol
     from point_gn_ros.recognizer import encode_clouds, make_encoder
 
@@ -254,10 +259,14 @@ def _teach(args: argparse.Namespace) -> int:
     policy = RefitPolicy(lda_prior='typical', lda_debias=2.0, lda_steal_budget=0.001,
                          ridge='off')
     fit = DEFAULT_FIT_THRESHOLD if args.fit_threshold is None else args.fit_threshold
+    vol = volume_rule(DEFAULT_VOLUME_THRESHOLD if args.volume_threshold is None
+                      else args.volume_threshold)
     rep = run_teach_protocol(bf, list(ds.class_names), np.asarray(ds.labels), feats, sizes,
                              args.shots or 5, args.draws, args.seed, policy, fit,
                              progress=None if args.json else
-                             lambda m: print(m, file=sys.stderr, flush=True))
+                             lambda m: print(m, file=sys.stderr, flush=True),
+                             volumes=None if vol is None else volumetric_shares(clouds),
+                             volume_threshold=vol)
     rep.update(bank=str(bf.bank.path), dataset=str(ds.path), split=ds.split)
     if args.json:
         print(json.dumps(rep, indent=2))
@@ -265,7 +274,8 @@ def _teach(args: argparse.Namespace) -> int:
     print(f'## teach-and-query: {Path(ds.path).name} [{ds.split}], {len(ds.class_names)} classes, '
           f'{rep["shots"]} scans a class taught into {Path(rep["bank"]).name}, '
           f'{rep["draws"]} draws (seed {rep["seed"]}), metric size '
-          f'{"on" if rep["metric_size"] else "off"}, fit threshold {fit:g}')
+          f'{"on" if rep["metric_size"] else "off"}, fit threshold {fit:g}, volume '
+          f'threshold {"off" if vol is None else f"{vol:g}"}')
     print('| figure | mean ± std over draws |\n|---|---|')
     for key, v in rep['summary'].items():
         pct = not key.startswith('auroc')

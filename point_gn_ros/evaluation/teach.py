@@ -58,14 +58,20 @@ def run_teach_protocol(bank_file: BankFile, class_names: list[str], labels: np.n
                        features: torch.Tensor, sizes: np.ndarray | None, shots: int = 5,
                        draws: int = 5, seed: int = 0, policy: RefitPolicy | None = None,
                        fit_threshold: float | None = None,
-                       progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+                       progress: Callable[[str], None] | None = None,
+                       volumes: np.ndarray | None = None,
+                       volume_threshold: float | None = None) -> dict[str, Any]:
     """The protocol of the module docstring.
 
     labels: (M,) data set class ids into class_names; features: (M, D) raw encoder output;
     sizes: (M, SIZE_DIM) metric log sizes, or None (no units: size skipped); fit_threshold:
     the default rule's fit threshold (None: no fit rule; the reject rates then use only
-    the bank's own unknown rule, off).
+    the bank's own unknown rule, off); volumes: (M,) the clouds' volumetric shares
+    (core/surface.py) and volume_threshold the node's volume rule (None: no such rule), also
+    counted in the reject rates.
     """
+    vol = np.zeros(len(labels), bool) if volumes is None or volume_threshold is None \
+        else np.asarray(volumes) > volume_threshold
     labels = np.asarray(labels, dtype=np.int64)
     n_cls = len(class_names)
     counts = np.bincount(labels, minlength=n_cls)
@@ -86,7 +92,7 @@ def run_teach_protocol(bank_file: BankFile, class_names: list[str], labels: np.n
         for c in order:
             if c == held and n_cls > 1:
                 open_row = _open_set(bf, class_names, labels, features, sizes, query, held,
-                                     fit_threshold)
+                                     fit_threshold, vol)
             idx = support[labels[support] == c]
             bf = add_examples(bf, features[idx], class_names[c], source='point_gn fewshot',
                               policy=policy, sizes=None if sizes is None else sizes[idx]).file
@@ -99,7 +105,8 @@ def run_teach_protocol(bank_file: BankFile, class_names: list[str], labels: np.n
         true = labels[query]
         row = {'draw': draw, 'accuracy': mean_class_accuracy(top1, true),
                'built_share': float((top1 < 0).mean()),
-               'rejected': float((res.labels < 0).mean()),
+               'rejected': float(((res.labels < 0) | vol[query]).mean()),
+               'volume_rejected': float(vol[query].mean()),
                'nearest_mean': mean_class_accuracy(nearest_mean(
                    features[support].numpy(), labels[support], features[query].numpy(),
                    n_cls), true)}
@@ -121,7 +128,7 @@ def run_teach_protocol(bank_file: BankFile, class_names: list[str], labels: np.n
 
 def _open_set(bf: BankFile, class_names: list[str], labels: np.ndarray, features: torch.Tensor,
               sizes: np.ndarray | None, query: np.ndarray, held: int,
-              fit_threshold: float | None) -> dict[str, Any]:
+              fit_threshold: float | None, vol: np.ndarray) -> dict[str, Any]:
     """The bank without class `held`: its scans (all of them) against the others' queries."""
     unseen = np.flatnonzero(labels == held)
     known = query[labels[query] != held]
@@ -133,6 +140,7 @@ def _open_set(bf: BankFile, class_names: list[str], labels: np.ndarray, features
            'auroc_top_probability': auroc(-res.scores[is_unseen], -res.scores[~is_unseen])}
     if res.fit is not None:
         out['auroc_fit'] = auroc(-res.fit[is_unseen], -res.fit[~is_unseen])
-    out['unseen_rejected'] = float((res.labels[is_unseen] < 0).mean())
-    out['taught_rejected'] = float((res.labels[~is_unseen] < 0).mean())
+    rejected = (res.labels < 0) | vol[rows]
+    out['unseen_rejected'] = float(rejected[is_unseen].mean())
+    out['taught_rejected'] = float(rejected[~is_unseen].mean())
     return out
