@@ -136,10 +136,13 @@ class Recognizer:
     def from_bank(cls, path: str | os.PathLike[str] | None = None, device: str = 'cpu',
                   resample: ResampleMethod = 'fps', top_k: int = 5,
                   unknown_threshold: float | None = None,
-                  threads: int | None = None, search: str = 'auto') -> 'Recognizer':
+                  threads: int | None = None, search: str = 'auto',
+                  fit_threshold: float | None = None,
+                  volume_threshold: float | None = None) -> 'Recognizer':
         """Load a bank (None: the shipped default) and build the matching encoder."""
         return cls(FeatureBank.load(path), device, resample, top_k, unknown_threshold,
-                   threads=threads, search=search)
+                   threads=threads, search=search, fit_threshold=fit_threshold,
+                   volume_threshold=volume_threshold)
 
     @property
     def class_names(self) -> list[str]:
