@@ -10,7 +10,7 @@ setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
-    package_data={package_name: ['data/*.npz', 'core/kernels/*.c', 'core/kernels/*.h']},
+    package_data={package_name: ['data/*.npz', 'data/*.json', 'core/kernels/*.c', 'core/kernels/*.h']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),

@@ -6,6 +6,7 @@ This is what the ROS node, the CLI and the rosbag tools call; it holds no ROS co
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 import os
 import time
 from typing import Protocol
@@ -14,10 +15,12 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.classifier import Classification, Classifier
+from point_gn_ros.bank.classifier import UNKNOWN, Classification, Classifier
 from point_gn_ros.core.augment import Augment, yaw_variants
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.sampling import ResampleMethod, prepare
+from point_gn_ros.core.size import size_descriptors
+from point_gn_ros.core.surface import volumetric_shares
 
 
 class Encoder(Protocol):
@@ -103,20 +106,29 @@ class Recognizer:
                  top_k: int = 5, unknown_threshold: float | None = None,
                  encoder: Encoder | None = None, threads: int | None = None,
                  search: str = 'auto', previous: 'Recognizer | None' = None,
-                 object_test: bool = True) -> None:
+                 object_test: bool = True, metric_size: bool = True,
+                 fit_threshold: float | None = None,
+                 volume_threshold: float | None = None) -> None:
         """Encoder + classifier for one bank.
 
         search: the classifier's bank search, 'auto', 'exact' or 'indexed'
         (bank/classifier.py; 'auto' indexes large banks once, here); previous: the
         recognizer of the bank version this one follows (its index is extended, not rebuilt);
-        object_test: apply the bank's object test to taught classes (bank/objects.py).
+        object_test: apply the bank's object test to taught classes (bank/objects.py);
+        metric_size: the clouds are in metres, z up: their size (core/size.py) is evidence
+        (bank/taught.py); False for inputs without metric meaning (unit-sphere data);
+        fit_threshold: shape-and-size fit below which a cloud is unknown (None: no such rule);
+        volume_threshold: share of volumetric neighbourhoods (core/surface.py) above which a
+        cloud is unknown, a volume of points rather than a view of surfaces (None: no such rule).
         """
         self.bank = bank
         self.encoder = encoder or make_encoder(bank.config, device, threads=threads)
         bank.check_config(self.encoder.cfg)
         self.classifier = Classifier(bank, device, unknown_threshold, search=search,
                                      previous=None if previous is None else previous.classifier,
-                                     object_test=object_test)
+                                     object_test=object_test, fit_threshold=fit_threshold)
+        self.metric_size = metric_size
+        self.volume_threshold = volume_threshold
         self.resample = resample
         self.top_k = top_k
 
@@ -124,10 +136,13 @@ class Recognizer:
     def from_bank(cls, path: str | os.PathLike[str] | None = None, device: str = 'cpu',
                   resample: ResampleMethod = 'fps', top_k: int = 5,
                   unknown_threshold: float | None = None,
-                  threads: int | None = None, search: str = 'auto') -> 'Recognizer':
+                  threads: int | None = None, search: str = 'auto',
+                  fit_threshold: float | None = None,
+                  volume_threshold: float | None = None) -> 'Recognizer':
         """Load a bank (None: the shipped default) and build the matching encoder."""
         return cls(FeatureBank.load(path), device, resample, top_k, unknown_threshold,
-                   threads=threads, search=search)
+                   threads=threads, search=search, fit_threshold=fit_threshold,
+                   volume_threshold=volume_threshold)
 
     @property
     def class_names(self) -> list[str]:
@@ -158,7 +173,22 @@ class Recognizer:
         if not clouds:
             return self.classifier.classify(torch.zeros(0, self.encoder.cfg.feature_dim),
                                             self.top_k)
-        return self.classifier.classify(self.encode(clouds), self.top_k)
+        res = self.classifier.classify(self.encode(clouds), self.top_k, self.sizes(clouds))
+        return self._volume_rule(res, self.volumes(clouds))
+
+    def volumes(self, clouds: Sequence[np.ndarray]) -> np.ndarray | None:
+        """(B,) share of volumetric neighbourhoods (core/surface.py); None without the rule."""
+        return volumetric_shares(clouds) if self.volume_threshold is not None else None
+
+    def _volume_rule(self, res: Classification, volumes: np.ndarray | None) -> Classification:
+        if volumes is None:
+            return res
+        labels = np.where(volumes > self.volume_threshold, UNKNOWN, res.labels)
+        return replace(res, labels=labels, volumetric=volumes.astype(np.float32))
+
+    def sizes(self, clouds: Sequence[np.ndarray]) -> np.ndarray | None:
+        """(B, SIZE_DIM) metric log sizes (core/size.py); None without metric_size."""
+        return size_descriptors(list(clouds)) if self.metric_size else None
 
     def classify_later(self, clouds: Sequence[np.ndarray]) -> Callable[[], Classification]:
         """`classify_clouds(clouds)` in two parts: started now, finished by the returned call.
@@ -175,4 +205,6 @@ class Recognizer:
         cfg = self.encoder.cfg
         batch = np.stack([_prepared(c, cfg, self.resample, 0) for c in clouds])
         features = start(torch.from_numpy(batch))
-        return lambda: self.classifier.classify(features(), self.top_k)
+        sizes, volumes = self.sizes(clouds), self.volumes(clouds)
+        return lambda: self._volume_rule(self.classifier.classify(features(), self.top_k, sizes),
+                                         volumes)

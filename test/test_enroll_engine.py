@@ -35,6 +35,9 @@ class _FakeRecognizer:
             out[i, 3:] = float(c[0, 0])
         return out
 
+    def sizes(self, clouds: list[np.ndarray]) -> None:
+        return None                               # no metric size (test_size.py has one)
+
 
 def _engine(tmp_path: Path, chunk: int = 4, fuse_views: bool = False, warn=None  # noqa: ANN001
             ) -> tuple[EnrollEngine, LiveBank, list]:

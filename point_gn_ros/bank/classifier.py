@@ -46,7 +46,9 @@ import torch
 from point_gn_ros.bank.head import ExactSearch, VoteSearch
 from point_gn_ros.bank.helper import helper_thread
 from point_gn_ros.bank.lone import LoneGate, LoneSection
+from point_gn_ros.bank.refit import vote_to_z
 from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.taught import TaughtLayer
 from point_gn_ros.bank.vote_prior import vote_log_bias
 
 UNKNOWN = -1
@@ -88,6 +90,10 @@ class Classification:
     probability: np.ndarray | None = None
     novelty: np.ndarray | None = None
     partial: np.ndarray | None = None    # (B,) gate's p(single-view scan); two-section banks
+    fit: np.ndarray | None = None        # (B,) shape-and-size fit to the nearest class
+                                         # (bank/taught.py); None when the layer did not run
+    volumetric: np.ndarray | None = None  # (B,) share of volumetric neighbourhoods
+                                          # (core/surface.py); None without the volume rule
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -165,14 +171,17 @@ class Classifier:
                  unknown_threshold: float | None = None, gamma: float | None = None,
                  novelty_threshold: float | None = None, search: str = 'auto',
                  index_min_entries: int = INDEX_MIN_ENTRIES,
-                 previous: 'Classifier | None' = None, object_test: bool = True) -> None:
+                 previous: 'Classifier | None' = None, object_test: bool = True,
+                 fit_threshold: float | None = None) -> None:
         """Classifier of one bank version (the search is built here, once).
 
         gamma: override the bank's (comparisons only); search: 'auto', 'exact' or
         'indexed' (module docstring); index_min_entries: the size from which 'auto' indexes;
         previous: the classifier of the version this one follows (an enrollment): its
         indexes are extended instead of rebuilt where that gives the same (`make_search`);
-        object_test: apply the bank's object test to its taught classes (bank/objects.py).
+        object_test: apply the bank's object test to its taught classes (bank/objects.py);
+        fit_threshold: a query whose shape-and-size fit (bank/taught.py) is below it is
+        unknown (None: no such rule).
         """
         self.bank = bank
         self.device = torch.device(device)
@@ -207,6 +216,8 @@ class Classifier:
             else:
                 unknown_threshold = float(calib['threshold'])
         self.unknown_threshold = unknown_threshold or None
+        self.fit_threshold = fit_threshold
+        self._taught: TaughtLayer | None = None
         # The object test's shift of taught classes (bank/objects.py); None: nothing moves.
         self.object_shift = None if bank.objects is None or not object_test \
             else bank.objects.shift_for(bank)
@@ -309,11 +320,32 @@ class Classifier:
         """features: (B, D) raw encoder output -> (B, C) calibrated class probabilities."""
         return self.evaluate(features)[0]
 
+    @property
+    def taught(self) -> TaughtLayer:
+        """The bank's prototypes and size models (bank/taught.py), built on first use."""
+        if self._taught is None:
+            self._taught = TaughtLayer.build(
+                self.bank.meta, self.bank.class_names,
+                vote_to_z(self.bank.features, self.bank.head), self.bank.labels)
+        return self._taught
+
     @torch.no_grad()
-    def classify(self, features: torch.Tensor, top_k: int = 5) -> Classification:
-        """features: (B, D) float32 raw encoder output -> Classification."""
+    def classify(self, features: torch.Tensor, top_k: int = 5,
+                 sizes: np.ndarray | None = None) -> Classification:
+        """features: (B, D) float32 raw encoder output -> Classification.
+
+        sizes: (B, SIZE_DIM) metric log sizes of the queries (core/size.py), or None for
+        inputs without metric meaning. The taught-class prototypes and the size terms
+        (bank/taught.py) run when the bank has taught classes, sizes are given, or the
+        fit threshold is set; otherwise the head's probabilities are the answer.
+        """
         prob, novelty, partial = self._evaluate(features)
         prob, novelty = prob.cpu(), novelty.cpu()
+        fit = None
+        if len(features) and (sizes is not None or self.fit_threshold is not None
+                              or self.bank.meta.get('taught')):
+            z = self.transform(features.to(self.device)).cpu()
+            prob, fit = self.taught.apply(prob, z, sizes)
         k = max(1, min(top_k, prob.shape[1]))
         top_s, top_i = prob.topk(k, dim=1)
         labels = top_i[:, 0].clone()
@@ -321,6 +353,8 @@ class Classifier:
             labels[top_s[:, 0] < self.unknown_threshold] = UNKNOWN
         if self.novelty_threshold is not None:
             labels[novelty > self.novelty_threshold] = UNKNOWN
+        if self.fit_threshold is not None and fit is not None:
+            labels[torch.from_numpy(fit < self.fit_threshold)] = UNKNOWN
         return Classification(labels=labels.numpy().astype(np.int64),
                               scores=top_s[:, 0].numpy().astype(np.float32),
                               topk_ids=top_i.numpy().astype(np.int64),
@@ -328,4 +362,5 @@ class Classifier:
                               probability=prob.numpy().astype(np.float32),
                               novelty=novelty.numpy().astype(np.float32),
                               partial=None if partial is None
-                              else partial.cpu().numpy().astype(np.float32))
+                              else partial.cpu().numpy().astype(np.float32),
+                              fit=None if fit is None else fit.astype(np.float32))

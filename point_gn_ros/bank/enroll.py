@@ -21,6 +21,8 @@ Metadata added (JSON, in the bank file):
   vote_prior     {beta, classes}: the enrolled classes whose kernel vote gets a class-size
                  prior (RefitPolicy.vote_prior > 0 when they were created; bank/vote_prior.py)
   refit          how gamma / calibration were last decided {version, gamma, calibration, ...}
+  taught         {class: {n, mean, [sn, smean, sm2]}}: each enrolled class's prototype and
+                 measured size (bank/taught.py)
 """
 
 from __future__ import annotations
@@ -39,9 +41,11 @@ from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitError, RefitPolicy, 
                                      copy_meta, example_counts, refit, vote_to_z)
 from point_gn_ros.bank.rows import append_rows
 from point_gn_ros.bank.store import FeatureBank, quantized
+from point_gn_ros.bank.taught import add_taught, drop_taught
 from point_gn_ros.bank.validate import class_name_problem
 from point_gn_ros.bank.vote_prior import is_listed, with_listed, without
 from point_gn_ros.core.augment import variants_per_example
+from point_gn_ros.core.size import SIZE_DIM
 from point_gn_ros.errors import PointGNError
 
 # At most this many near-duplicate pairs are listed (the count is always exact).
@@ -135,20 +139,23 @@ def predictable(bank: FeatureBank, min_examples: int) -> list[str]:
 
 def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
                  source: str = 'api', policy: RefitPolicy | None = None,
-                 when: datetime | None = None, augment: str = 'none') -> EnrollResult:
+                 when: datetime | None = None, augment: str = 'none',
+                 sizes: np.ndarray | None = None) -> EnrollResult:
     """Add encoder features of new examples under `class_name` (new or existing class).
 
     features: (M * k, D) float32 raw encoder output (D = the bank's encoder feature_dim),
     M >= 1 examples, each encoded in the k frames of `augment` (core/augment.py; k = 1 for
     'none'), example-major as `encode_clouds(..., augment=augment)` returns them. Every row
     becomes an entry; the class counts M examples (min_examples), near-duplicates are checked
-    on the canonical frames. Returns a new bank (version + 1); `bf` is left untouched. A
+    on the canonical frames. sizes: (M, SIZE_DIM) the examples' metric log sizes (core/size.py)
+    or None (no metric meaning); kept with the class's prototype (bank/taught.py meta
+    'taught'). Returns a new bank (version + 1); `bf` is left untouched. A
     two-section bank takes the examples into both sections (each through its own transform
     and head), so the class is predicted whichever section the gate favours.
     """
     if bf.views is not None:
         return _both_sections(add_examples, bf, features, class_name, source, policy,
-                              when=when, augment=augment)
+                              when=when, augment=augment, sizes=sizes)
     bank, policy = bf.bank, policy or RefitPolicy()
     class_name = _check_name(class_name)
     try:
@@ -181,6 +188,9 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
                 **extra)
     if policy.vote_prior > 0 and (new_class or is_listed(meta, class_name)):
         meta = with_listed(meta, policy.vote_prior, class_name)   # bank/vote_prior.py
+    if sizes is not None and np.shape(sizes) != (len(new) // k, SIZE_DIM):
+        raise EnrollError(f'sizes must be ({len(new) // k}, {SIZE_DIM}), got {np.shape(sizes)}')
+    meta = add_taught(meta, class_name, z_new[::k], sizes)
     if k > 1:
         aug = dict(meta.get('augmented_entries', {}))
         aug[class_name] = int(aug.get(class_name, 0)) + len(new) - len(new) // k
@@ -220,7 +230,8 @@ def remove_class(bf: BankFile, class_name: str, source: str = 'api',
     labels = labels - (labels > cid).long()
     names = [n for n in bank.class_names if n != class_name]
     removed = int((~keep).sum())
-    meta = without(_log(bank, 'remove', class_name, removed, source, when), class_name)
+    meta = drop_taught(without(_log(bank, 'remove', class_name, removed, source, when),
+                               class_name), class_name)
     if class_name in meta.get('augmented_entries', {}):
         meta['augmented_entries'] = {c: n for c, n in meta['augmented_entries'].items()
                                      if c != class_name}

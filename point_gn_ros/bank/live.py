@@ -17,6 +17,7 @@ from pathlib import Path
 import threading
 from typing import Generic, TypeVar
 
+import numpy as np
 import torch
 
 from point_gn_ros.bank.enroll import (BankFile, EnrollResult, RefitPolicy, active_view,
@@ -88,14 +89,16 @@ class LiveBank(Generic[Model]):
         return self._snap
 
     def add(self, features: torch.Tensor, class_name: str, source: str,
-            when: datetime | None = None, augment: str = 'none') -> EnrollResult:
+            when: datetime | None = None, augment: str = 'none',
+            sizes: np.ndarray | None = None) -> EnrollResult:
         """features: (M * k, D) float32 raw encoder output -> the result; publishes it.
 
-        augment: how the examples were encoded (k frames each, see `add_examples`).
+        augment: how the examples were encoded (k frames each, see `add_examples`); sizes:
+        (M, SIZE_DIM) the examples' metric log sizes (core/size.py) or None.
         """
         with self._lock:
             res = add_examples(self._snap.file, features, class_name, source, self.policy, when,
-                               augment)
+                               augment, sizes=sizes)
             self._snap = self._snapshot(res.file, self._snap)
             self._refit_pending()
         return res

@@ -158,9 +158,9 @@ def main(argv: list[str] | None = None) -> int:
               f'  {"latency":>10}')
         for i, kind in ((i, k) for i in range(count) for k in args.kinds):
             yaw = float(rng.uniform(0, 2 * np.pi)) if args.random_yaw else 0.0
-            xyz = place_in_sensor_frame(objects.xyz[i], rng, yaw=yaw,
-                                        single_view=kind == 'scan')
             true = objects.class_names[int(objects.labels[i])]
+            xyz = place_in_sensor_frame(objects.xyz[i], rng, yaw=yaw,
+                                        single_view=kind == 'scan', class_name=true)
             key, sent = client.send(xyz, FRAME)
             if not client.spin_until(lambda k=key: k in client.answers, args.timeout, node):
                 missing += 1

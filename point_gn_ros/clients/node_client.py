@@ -45,15 +45,20 @@ def load_demo_objects(path: str | os.PathLike[str] = DEMO_OBJECTS) -> DemoObject
 
 
 def place_in_sensor_frame(xyz: np.ndarray, rng: np.random.Generator, noise: float = 0.003,
-                          yaw: float = 0.0, single_view: bool = False) -> np.ndarray:
+                          yaw: float = 0.0, single_view: bool = False,
+                          class_name: str | None = None) -> np.ndarray:
     """A unit-sphere object as a sensor sees it: metres, `yaw` radians about z, translated.
 
     single_view: only a simulated scan of the side facing the sensor at the origin (hidden
     points removed, sensor noise, dropout; core/views.py), as a depth camera or lidar sees it.
     The node normalises position and scale itself; a yaw-aligned bank (the shipped one)
     also undoes the yaw, any other bank needs the dataset's orientation (yaw 0).
+    class_name: scale the object to a typical real size of its class (bank/taught.py
+    `plausible_scale`, x 0.8-1.25), as the node's metric size expects; None: 0.4-1.0 x.
     """
-    scale = rng.uniform(0.4, 1.0)
+    from point_gn_ros.bank.taught import plausible_scale
+    scale = rng.uniform(0.4, 1.0) if class_name is None else \
+        plausible_scale(xyz, class_name) * rng.uniform(0.8, 1.25)
     offset = np.array([rng.uniform(2.0, 8.0), rng.uniform(-3.0, 3.0), rng.uniform(0.0, 1.0)],
                       dtype=np.float32)
     if single_view:

@@ -39,6 +39,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'frames the yaw alignment confuses on partial scans (8 entries per '
                         "example); default 'none'")
     add_up_arg(a)
+    a.add_argument('--units', choices=('m', 'none'), default='m',
+                   help="what the coordinates measure: 'm' metres (sensor data; default): the "
+                        "class keeps its examples' sizes (core/size.py, docs/SIZE.md); 'none' "
+                        'for data without metric meaning (unit-sphere data sets such as '
+                        'ModelNet40): no size model')
     a.add_argument('--fuse-views', action='store_true',
                    help='the inputs are views of ONE object in one fixed frame (odom, map): '
                         'also add their fused cloud and 8 scans simulated from it '
@@ -198,6 +203,7 @@ def _read_dataset(args: argparse.Namespace, path: Path) -> tuple[list, str]:
 
 def _add(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.enroll import BankFile, EnrollError, add_examples
+    from point_gn_ros.core.size import size_descriptors
     from point_gn_ros.recognizer import encode_clouds, make_encoder
 
     bf = BankFile.load(resolve_bank(args.bank, args.output))
@@ -217,8 +223,9 @@ def _add(args: argparse.Namespace) -> int:
         source = f'{source}; {note}'
     encoder = make_encoder(bf.bank.config, args.device)
     feats = encode_clouds(clouds, encoder, batch_size=args.batch_size, augment=args.augment)
+    sizes = size_descriptors(clouds) if args.units == 'm' else None
     res = add_examples(bf, feats, args.class_name, source=f'point_gn bank add: {source}',
-                       policy=_policy(args), augment=args.augment)
+                       policy=_policy(args), augment=args.augment, sizes=sizes)
     return _write(args, res)
 
 

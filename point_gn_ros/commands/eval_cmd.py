@@ -60,6 +60,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument('--episodes', type=int, default=10, help='seeded episodes per setting')
     f.add_argument('--seed', type=int, default=0, help='episode seed')
     f.add_argument('--json', action='store_true', help='print results as JSON')
+    f.add_argument('--bank', default=None, metavar='BANK',
+                   help="teach-and-query protocol instead of episodes: teach --shots scans "
+                        "(default 5) of every class into BANK ('default': the shipped bank) as "
+                        '`bank add` does, query the rest, over --draws draws; reports mean class '
+                        'accuracy, the share answered with a class the data set lacks, the '
+                        'open-set AUROC with one class left out, and the nearest-mean and '
+                        'geometry baselines (evaluation/teach.py)')
+    f.add_argument('--draws', type=int, default=5, help='--bank: random draws (default 5)')
+    f.add_argument('--no-units', action='store_true',
+                   help='--bank: the clouds have no metric meaning (unit-sphere data): skip '
+                        'metric size')
+    f.add_argument('--fit-threshold', type=float, default=None, metavar='F',
+                   help='--bank: the unknown rule whose reject rates are reported (default: '
+                        "the node's default, bank/taught.py DEFAULT_FIT_THRESHOLD)")
+    f.add_argument('--volume-threshold', type=float, default=None, metavar='V',
+                   help='--bank: the volume rule counted in the reject rates (default: the '
+                        "node's, core/surface.py DEFAULT_VOLUME_THRESHOLD; 1 = off)")
     f.set_defaults(func=_fewshot)
 
 
@@ -80,9 +97,13 @@ def _eval(args: argparse.Namespace) -> int:
         return _eval_open_set(args)
     bank = FeatureBank.load(args.bank)
     ds = open_dataset_from_args(args)
-    if list(ds.class_names) != list(bank.class_names):
-        raise DatasetError(f"{ds.path}: class names differ from the bank's "
+    # A bank enlarged by enrollment may hold more classes than the data set: its labels are
+    # mapped to the bank's ids, and answers with the extra classes count as wrong.
+    missing = sorted(set(ds.class_names) - set(bank.class_names))
+    if missing:
+        raise DatasetError(f"{ds.path}: classes the bank lacks: {', '.join(missing[:10])} "
                            f'({len(ds.class_names)} vs {len(bank.class_names)} classes)')
+    true = np.array([bank.class_names.index(ds.class_names[int(y)]) for y in ds.labels])
     enc = make_encoder(bank.config, args.device)
     source = ds
     if args.single_view:
@@ -97,7 +118,7 @@ def _eval(args: argparse.Namespace) -> int:
     clf = Classifier(bank, args.device, args.unknown_threshold, gamma=args.gamma,
                      search=args.search)
     res = clf.classify(torch.as_tensor(feats), top_k=1)
-    report = accuracy_report(ds.labels, res.labels, bank.class_names)
+    report = accuracy_report(true, res.labels, bank.class_names)
     report.update(bank=str(bank.path), dataset=str(ds.path), split=ds.split,
                   gamma=clf.gamma, search=clf.search_kind, random_yaw_seed=args.random_yaw,
                   single_view_seed=args.seed if args.single_view else None,
@@ -179,6 +200,8 @@ def _fewshot(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
+    if args.bank:
+        return _teach(args)
     from point_gn_ros.commands.common import open_dataset_from_args
     from point_gn_ros.core.config import EncoderConfig
     from point_gn_ros.evaluation.fewshot import PAPER_SETTINGS, run_fewshot
@@ -208,4 +231,55 @@ def _fewshot(args: argparse.Namespace) -> int:
         for r in results:
             print(f'| {r["ways"]}-way {r["shots"]}-shot | {100 * r["mean"]:.1f} ± '
                   f'{100 * r["std"]:.1f} % |')
+    return 0
+
+
+def _teach(args: argparse.Namespace) -> int:
+    """`point_gn fewshot DATASET --bank BANK`: the teach-and-query protocol."""
+    import sys
+
+    from point_gn_ros.bank.enroll import BankFile, RefitPolicy
+    from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD
+    from point_gn_ros.commands.common import open_dataset_from_args
+    from point_gn_ros.core.size import size_descriptors
+    from point_gn_ros.core.surface import (DEFAULT_VOLUME_THRESHOLD, volume_rule,
+                                           volumetric_shares)
+    from point_gn_ros.evaluation.teach import run_teach_protocol
+    from point_gn_ros.recognizer import encode_clouds, make_encoder
+
+    ds = open_dataset_from_args(args)
+    bf = BankFile.load(None if args.bank == 'default' else args.bank)
+    clouds = [ds[i][0] for i in range(len(ds))]
+    enc = make_encoder(bf.bank.config, args.device)
+    feats = encode_clouds(clouds, enc, batch_size=args.batch_size,
+                          progress=None if args.json else 'encoding')
+    sizes = None if args.no_units else size_descriptors(clouds)
+    # `bank add`'s policy; a kernel ridge term is served without refit ('off', the node's
+    # immediate answer): its full refit takes minutes per class on the shipped bank.
+    policy = RefitPolicy(lda_prior='typical', lda_debias=2.0, lda_steal_budget=0.001,
+                         ridge='off')
+    fit = DEFAULT_FIT_THRESHOLD if args.fit_threshold is None else args.fit_threshold
+    vol = volume_rule(DEFAULT_VOLUME_THRESHOLD if args.volume_threshold is None
+                      else args.volume_threshold)
+    rep = run_teach_protocol(bf, list(ds.class_names), np.asarray(ds.labels), feats, sizes,
+                             args.shots or 5, args.draws, args.seed, policy, fit,
+                             progress=None if args.json else
+                             lambda m: print(m, file=sys.stderr, flush=True),
+                             volumes=None if vol is None else volumetric_shares(clouds),
+                             volume_threshold=vol)
+    rep.update(bank=str(bf.bank.path), dataset=str(ds.path), split=ds.split)
+    if args.json:
+        print(json.dumps(rep, indent=2))
+        return 0
+    print(f'## teach-and-query: {Path(ds.path).name} [{ds.split}], {len(ds.class_names)} classes, '
+          f'{rep["shots"]} scans a class taught into {Path(rep["bank"]).name}, '
+          f'{rep["draws"]} draws (seed {rep["seed"]}), metric size '
+          f'{"on" if rep["metric_size"] else "off"}, fit threshold {fit:g}, volume '
+          f'threshold {"off" if vol is None else f"{vol:g}"}')
+    print('| figure | mean ± std over draws |\n|---|---|')
+    for key, v in rep['summary'].items():
+        pct = not key.startswith('auroc')
+        scale, unit = (100, ' %') if pct else (1, '')
+        print(f'| {key.replace("_", " ")} | {scale * v["mean"]:.{1 if pct else 3}f} ± '
+              f'{scale * v["std"]:.{1 if pct else 3}f}{unit} |')
     return 0

@@ -60,6 +60,7 @@ class _Request:
     source: str
     received: float = field(default_factory=time.monotonic)
     feats: list[torch.Tensor] = field(default_factory=list)
+    sizes: list[np.ndarray | None] = field(default_factory=list)  # (n, SIZE_DIM) or None
     encoded: int = 0
     fuse: bool = False                 # views of one object: fused on the worker first
 
@@ -273,6 +274,7 @@ class EnrollEngine:
             return True
         try:
             req.feats.append(recognizer.encode(todo, augment=self.augment))
+            req.sizes.append(recognizer.sizes(todo))  # metric size (core/size.py) or None
         except Exception as exc:  # noqa: BLE001 - one bad example costs its request only
             self._drop_head(req, f'encoding failed: {type(exc).__name__}: {exc}')
             return bool(self._requests)
@@ -356,8 +358,10 @@ class EnrollEngine:
             return
         source = req.source if len(reqs) == 1 else f'{req.source} ({len(reqs)} requests)'
         try:
+            parts = [s for r in reqs for s in r.sizes]
+            sizes = None if any(s is None for s in parts) else np.concatenate(parts)
             res = self.live.add(torch.cat([f for r in reqs for f in r.feats]), req.class_name,
-                                source, augment=self.augment)
+                                source, augment=self.augment, sizes=sizes)
         except (EnrollError, PointGNError, ValueError) as exc:
             self.report_error(f'enrollment of {req.class_name[:60]!r} refused: {exc}')
             return

@@ -354,11 +354,15 @@ class Enrollment(ManagedEntity):
         previous: the recognizer of the version before (an enrollment): its search index is
         extended rather than rebuilt where that is exact (bank/search.py).
         """
+        from point_gn_ros.bank.taught import fit_rule
+        from point_gn_ros.core.surface import volume_rule
         from point_gn_ros.recognizer import Recognizer
         s, enc = self.node.settings, self.node.recognizer.encoder
         return Recognizer(bank, s.device, s.resample, s.top_k, s.unknown_threshold or None,
                           encoder=enc, search=s.search, previous=previous,
-                          object_test=s.object_test)
+                          object_test=s.object_test, metric_size=s.metric_size,
+                          fit_threshold=fit_rule(s.fit_threshold),
+                          volume_threshold=volume_rule(s.volume_threshold))
 
     # ------------------------------------------------------------------ worker hooks
 

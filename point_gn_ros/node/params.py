@@ -89,6 +89,9 @@ class Settings:
     autostart: bool = True
     search: str = 'auto'
     object_test: bool = True
+    metric_size: bool = True
+    fit_threshold: float = 0.0
+    volume_threshold: float = 0.8
     allow_parameter_changes: bool = False
     no_segment_ids: tuple[str, ...] = ('negative', 'max')
     # One per input topic (same order): its own segment field, up axis and QoS.
@@ -194,6 +197,19 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                           '(bank/objects.py: a taught class gains on scans nearer its object '
                           'than any built one, loses on the others); false = the head alone. '
                           'Banks without one (format < 6): no effect.', {}),
+    'metric_size': (True, 'Input clouds are in metres (z up after up_axis): their measured size '
+                          'is evidence against classes of implausible size, and taught classes '
+                          'keep the sizes of their examples (bank/taught.py, docs/SIZE.md); '
+                          'false for inputs without metric meaning (unit-sphere data).', {}),
+    'fit_threshold': (0.0, 'Unknown (class_id -1) when the shape-and-size fit to the nearest '
+                           'class is below it (bank/taught.py): garbage decodes and clouds of a '
+                           'size no class has; -10 = off (docs/SIZE.md for the trade-off).',
+                      {'floating_point_range': _float_range(-10.0, 1.0)}),
+    'volume_threshold': (0.8, "Unknown (class_id -1) when more than this share of the cloud's "
+                              'local neighbourhoods is volumetric (core/surface.py): a volume of '
+                              'random points, not a view of surfaces; 1.0 = off '
+                              '(docs/SIZE.md for the trade-off).',
+                         {'floating_point_range': _float_range(0.0, 1.0)}),
     'autostart': (True, 'Walk the lifecycle to active at start (configure + activate), as a '
                         'plain node; false = wait for a lifecycle manager.', {}),
     'allow_parameter_changes': (False, 'Let `ros2 param set` (any peer on the ROS domain: '

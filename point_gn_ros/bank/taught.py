@@ -1,0 +1,266 @@
+"""Taught classes as prototypes, and metric size as evidence (core/size.py).
+
+A class taught from a few sensor scans is answered best by its class mean: the head's
+discriminant was fitted on thousands of CAD rows and leans to what it was built on. And a
+robot's clouds are in metres: a 15 cm carton is not a wardrobe. This layer moves the head's
+probabilities (B, C) after the head, in two ways:
+
+  taught block  classes with taught examples (meta 'taught', written by every enrollment)
+                share the head's total probability on them, p_T, re-divided among them by
+                softmax(KAPPA cos(z, m_c) + W plaus_c): m_c the mean of the class's taught
+                rows z (the main section's transformed unit rows), cos the cosine to it;
+                mixed with the head's own division by a gate that opens as the query's best
+                cosine to a taught mean passes GATE_COS (built-class queries keep the head's);
+  size          every class whose size is known gets W plaus_c on its log-probability:
+                taught classes: -1/2 sum_d (s_d - mu_d)^2 / var_d over the measured log sizes
+                of its taught examples (var shrunk towards PRIOR_VAR with PRIOR_COUNT pseudo
+                examples); built classes: the real-world size prior (data/size_prior.json),
+                0 inside the relaxed range, -1/2 (distance / RANGE_TAU)^2 outside it.
+
+Queries without metric size (sizes None: unit-sphere data, the node's metric_size off) skip
+the size terms; a bank with no taught class and no size then leaves the head's output
+exactly as it is (ModelNet40 figures unchanged).
+
+Fit (for the unknown rule): max_c (cos(z, m_c) + W / KAPPA plaus_c) over every class with a
+mean (built classes: the mean of their bank rows, size from the prior) -- how like its
+nearest class the query is in shape and size. Knobs chosen by CV on the tabletop set
+(scripts/size_knob_study.py, docs/SIZE.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import json
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from point_gn_ros.core.size import SIZE_DIM
+
+KAPPA = 10.0           # shape: logit per unit cosine to a taught class mean
+W_SIZE = 0.5           # size: weight of the plausibility on the log-probability
+GATE_COS = 0.75        # the prototypes re-divide p_T for queries whose best cosine to a
+GATE_SLOPE = 10.0      # taught mean passes GATE_COS (logistic gate of this slope)
+PRIOR_VAR = 0.02       # taught classes' log-size variance prior (sd ~14 %) ...
+PRIOR_COUNT = 3.0      # ... worth this many examples
+RANGE_LOW, RANGE_HIGH = 0.5, 1.25   # prior ranges relaxed: a partial view shows less
+RANGE_TAU = float(np.log(1.5))      # log-size distance outside a range per unit penalty
+# The node's default unknown rule: fit below this is unknown (docs/SIZE.md: chosen on the
+# tabletop set's leave-one-class-out folds, checked on blobs, scenes and garbage).
+DEFAULT_FIT_THRESHOLD = 0.0
+FIT_OFF = -10.0        # a fit threshold at or below this: no fit rule
+MAX_PLAUS = 50.0       # plausibility floor (-MAX_PLAUS): one absurd size does not swamp all
+KEY = 'taught'
+_PRIOR_FILE = Path(__file__).resolve().parents[1] / 'data' / 'size_prior.json'
+_PRIOR_DIMS = ('height', 'length', 'width')
+
+
+@lru_cache(maxsize=1)
+def size_prior() -> dict[str, np.ndarray]:
+    """Class name -> (3, 2) log ranges [height, length, width] x [low, high] (relaxed)."""
+    raw = json.loads(_PRIOR_FILE.read_text())['classes']
+    out = {}
+    for name, r in raw.items():
+        lo = np.log([r[d][0] * RANGE_LOW for d in _PRIOR_DIMS])
+        hi = np.log([r[d][1] * RANGE_HIGH for d in _PRIOR_DIMS])
+        out[name] = np.stack([lo, hi], axis=1)
+    return out
+
+
+def fit_rule(threshold: float) -> float | None:
+    """A node / CLI fit threshold -> the classifier's (None: off, at or below FIT_OFF)."""
+    return None if threshold <= FIT_OFF else float(threshold)
+
+
+def plausible_scale(xyz: np.ndarray, class_name: str) -> float:
+    """Factor that gives a unit-sphere object of `class_name` a typical real size.
+
+    xyz: (N, 3) z up. The geometric mean of (middle of the prior's height range / height)
+    and (middle of its length range / horizontal extent); 1.0 for a class without a prior.
+    """
+    raw = json.loads(_PRIOR_FILE.read_text())['classes'].get(class_name)
+    p = np.asarray(xyz, dtype=np.float64)
+    if raw is None or len(p) < 2:
+        return 1.0
+    h = max(float(np.ptp(p[:, 2])), 1e-6)
+    ln = max(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])), 1e-6)
+    want_h, want_l = np.sqrt(np.prod(raw['height'])), np.sqrt(np.prod(raw['length']))
+    return float(np.sqrt(want_h / h * want_l / ln))
+
+
+# ------------------------------------------------------------------ bank metadata (JSON)
+
+
+def add_taught(meta: dict[str, Any], class_name: str, z: torch.Tensor,
+               sizes: np.ndarray | None) -> dict[str, Any]:
+    """Meta with `class_name`'s taught record updated by new examples (a new dict).
+
+    z: (M, d) the examples' transformed unit rows (canonical frames); sizes: (M, SIZE_DIM)
+    log sizes (core/size.py) or None when the examples carry no metric size.
+    Record: n (examples), mean (d,) of z, and with sizes: sn, smean (SIZE_DIM,), sm2 (sum of
+    squared deviations), merged by Chan's update.
+    """
+    taught = dict(meta.get(KEY, {}))
+    rec = dict(taught.get(class_name, {}))
+    zs = z.double().numpy()
+    n0, m = int(rec.get('n', 0)), len(zs)
+    mean0 = np.asarray(rec.get('mean', np.zeros(zs.shape[1])), dtype=np.float64)
+    if mean0.shape != (zs.shape[1],):     # rows of another transform: start again
+        n0, mean0 = 0, np.zeros(zs.shape[1])
+    rec['n'] = n0 + m
+    rec['mean'] = _rounded((n0 * mean0 + zs.sum(0)) / (n0 + m))
+    if sizes is not None and len(sizes):
+        s = np.asarray(sizes, dtype=np.float64).reshape(-1, SIZE_DIM)
+        sn0 = int(rec.get('sn', 0))
+        smean0 = np.asarray(rec.get('smean', np.zeros(SIZE_DIM)), dtype=np.float64)
+        sm20 = np.asarray(rec.get('sm2', np.zeros(SIZE_DIM)), dtype=np.float64)
+        k, mu = len(s), s.mean(0)
+        delta = mu - smean0
+        tot = sn0 + k
+        rec['sn'] = tot
+        rec['smean'] = _rounded(smean0 + delta * k / tot)
+        rec['sm2'] = _rounded(sm20 + ((s - mu) ** 2).sum(0) + delta ** 2 * sn0 * k / tot)
+    taught[class_name] = rec
+    return {**meta, KEY: taught}
+
+
+def drop_taught(meta: dict[str, Any], class_name: str) -> dict[str, Any]:
+    """Meta without `class_name`'s taught record (a new dict)."""
+    if class_name not in meta.get(KEY, {}):
+        return meta
+    return {**meta, KEY: {c: r for c, r in meta[KEY].items() if c != class_name}}
+
+
+def _rounded(v: np.ndarray) -> list[float]:
+    return [round(float(x), 6) for x in v]
+
+
+# ------------------------------------------------------------------ the layer
+
+
+@dataclass(frozen=True)
+class TaughtLayer:
+    """One bank version's prototypes and size models (module docstring).
+
+    taught (T,) class ids with a mean; means (T, d) unit; built_ids (K,) and built_means
+    (K, d): the other classes' bank-row means; size_mu, size_var (C, SIZE_DIM) for classes
+    with measured sizes (nan elsewhere); ranges (C, 3, 2) log prior ranges (nan: none).
+    """
+
+    taught: np.ndarray
+    means: np.ndarray
+    built_ids: np.ndarray
+    built_means: np.ndarray
+    size_mu: np.ndarray
+    size_var: np.ndarray
+    ranges: np.ndarray
+    kappa: float = KAPPA
+    w_size: float = W_SIZE
+    gate_cos: float = GATE_COS
+
+    @classmethod
+    def build(cls, meta: dict[str, Any], class_names: list[str], z_rows: torch.Tensor,
+              labels: torch.Tensor) -> 'TaughtLayer':
+        """From the main section's metadata and its bank rows z (N, d), labels (N,)."""
+        c = len(class_names)
+        d = z_rows.shape[1]
+        rec = {k: v for k, v in meta.get(KEY, {}).items()
+               if k in class_names and isinstance(v, dict)}
+        taught, means = [], []
+        mu, var = np.full((c, SIZE_DIM), np.nan), np.full((c, SIZE_DIM), np.nan)
+        for name, r in rec.items():
+            i = class_names.index(name)
+            m = np.asarray(r.get('mean', []), dtype=np.float64)
+            if m.shape == (d,) and np.isfinite(m).all() and np.linalg.norm(m) > 0:
+                taught.append(i)
+                means.append(m / np.linalg.norm(m))
+            sn = int(r.get('sn', 0))
+            if sn > 0:
+                mu[i] = np.asarray(r['smean'], dtype=np.float64)
+                var[i] = (np.asarray(r['sm2'], dtype=np.float64) + PRIOR_COUNT * PRIOR_VAR) \
+                    / (sn - 1 + PRIOR_COUNT)
+        taught_ids = np.asarray(taught, dtype=np.int64)
+        built = np.setdiff1d(np.arange(c), taught_ids)
+        lab = labels.numpy()
+        zr = z_rows.double().numpy()
+        bm = np.zeros((len(built), d))
+        for k, i in enumerate(built):
+            rows = zr[lab == i]
+            if len(rows):
+                v = rows.mean(0)
+                bm[k] = v / max(np.linalg.norm(v), 1e-12)
+        prior = size_prior()
+        ranges = np.full((c, 3, 2), np.nan)
+        for i, name in enumerate(class_names):
+            if name in prior:
+                ranges[i] = prior[name]
+        return cls(taught_ids, np.asarray(means).reshape(-1, d), built.astype(np.int64), bm,
+                   mu, var, ranges)
+
+    @property
+    def active(self) -> bool:
+        """Whether the layer can move anything without sizes (taught classes exist)."""
+        return len(self.taught) > 0
+
+    def plausibility(self, sizes: np.ndarray) -> np.ndarray:
+        """sizes: (B, SIZE_DIM) log sizes -> (B, C) plausibility <= 0 (0: no size known)."""
+        sizes = np.asarray(sizes, dtype=np.float64)
+        out = np.zeros((len(sizes), len(self.size_mu)))
+        known = np.isfinite(self.size_mu[:, 0])
+        if known.any():
+            d2 = (sizes[:, None, :] - self.size_mu[None, known]) ** 2 / self.size_var[None, known]
+            out[:, known] = -0.5 * d2.sum(-1)
+        ranged = np.isfinite(self.ranges[:, 0, 0]) & ~known
+        if ranged.any():
+            x = sizes[:, None, :3]
+            r = self.ranges[None, ranged]
+            gap = np.maximum(r[..., 0] - x, 0.0) + np.maximum(x - r[..., 1], 0.0)
+            out[:, ranged] = -0.5 * ((gap / RANGE_TAU) ** 2).sum(-1)
+        return np.maximum(out, -MAX_PLAUS)
+
+    def apply(self, prob: torch.Tensor, z: torch.Tensor, sizes: np.ndarray | None
+              ) -> tuple[torch.Tensor, np.ndarray]:
+        """Prob (B, C) rows summing to 1, z (B, d) unit rows, sizes (B, SIZE_DIM) or None.
+
+        -> moved probabilities (B, C) float32, fit (B,) float64 (module docstring).
+        """
+        logp = prob.double().clamp_min(1e-300).log().numpy()
+        zq = z.double().numpy()
+        plaus = None if sizes is None else self.plausibility(sizes)
+        if len(self.taught):
+            cos_t = zq @ self.means.T                                   # (B, T)
+            s = self.kappa * cos_t
+            if plaus is not None:
+                s = s + self.w_size * plaus[:, self.taught]
+            p_t = _logsumexp(logp[:, self.taught])
+            # a query unlike every taught mean keeps the head's division (gate -> 0): the
+            # prototypes must not concentrate p_t on one taught class for a built-class query
+            gate = 1.0 / (1.0 + np.exp(-GATE_SLOPE * (cos_t.max(1) - self.gate_cos)))[:, None]
+            share = gate * np.exp(s - _logsumexp(s)[:, None]) \
+                + (1.0 - gate) * np.exp(logp[:, self.taught] - p_t[:, None])
+            logp[:, self.taught] = p_t[:, None] + np.log(np.maximum(share, 1e-300))
+        if plaus is not None:
+            built = np.setdiff1d(np.arange(logp.shape[1]), self.taught)
+            logp[:, built] += self.w_size * plaus[:, built]
+        out = torch.softmax(torch.from_numpy(logp), dim=1).float()
+        return out, self.fit(zq, plaus)
+
+    def fit(self, zq: np.ndarray, plaus: np.ndarray | None) -> np.ndarray:
+        """(B, d) unit rows, plausibility (B, C) or None -> (B,) best shape-and-size fit."""
+        cos = np.full((len(zq), len(self.size_mu)), -np.inf)
+        if len(self.taught):
+            cos[:, self.taught] = zq @ self.means.T
+        if len(self.built_ids):
+            cos[:, self.built_ids] = zq @ self.built_means.T
+        if plaus is not None:
+            cos = cos + self.w_size / self.kappa * plaus
+        return cos.max(1) if cos.shape[1] else np.zeros(len(zq))
+
+
+def _logsumexp(a: np.ndarray) -> np.ndarray:
+    m = a.max(1)
+    m = np.where(np.isfinite(m), m, 0.0)
+    return m + np.log(np.exp(a - m[:, None]).sum(1))

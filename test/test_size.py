@@ -1,0 +1,200 @@
+"""Metric size (core/size.py), the taught-class layer (bank/taught.py) and `fewshot --bank`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from point_gn_ros.bank.taught import (DEFAULT_FIT_THRESHOLD, KEY, TaughtLayer, fit_rule,
+                                      plausible_scale, size_prior)
+from point_gn_ros.core.size import SIZE_DIM, size_descriptor
+
+TABLETOP = (Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'restaurant_kinectsim'
+            / 'all')
+
+
+def _box(rng: np.random.Generator, dims: tuple[float, float, float], n: int = 3000) -> np.ndarray:
+    return (rng.uniform(-0.5, 0.5, (n, 3)) * np.asarray(dims)).astype(np.float32)
+
+
+def test_size_descriptor_measures_a_box_in_metres_whatever_its_yaw_place_and_density() -> None:
+    rng = np.random.default_rng(0)
+    box = _box(rng, (2.0, 0.5, 1.2))
+    s = size_descriptor(box)
+    assert s.shape == (SIZE_DIM,)
+    # height 1.2, length 2.0, width 0.5: percentiles 2-98 keep 96 % of each extent
+    assert np.allclose(np.exp(s[:3]), [1.2 * 0.96, 2.0 * 0.96, 0.5 * 0.96], rtol=0.03)
+    c, si = np.cos(0.7), np.sin(0.7)
+    turned = box @ np.array([[c, -si, 0], [si, c, 0], [0, 0, 1]]).T + [5.0, -3.0, 1.0]
+    assert np.allclose(size_descriptor(turned), s, atol=0.02)
+    assert np.allclose(size_descriptor(box[::10]), s, atol=0.08)      # a tenth of the points
+    stray = np.vstack([box, [[40.0, 40.0, 40.0]]])                     # one outlier
+    assert np.allclose(size_descriptor(stray)[:3], s[:3], atol=0.02)
+    assert np.isfinite(size_descriptor(box[:1])).all()
+
+
+def test_size_prior_covers_modelnet40_and_scales_demo_objects_into_its_ranges() -> None:
+    prior = size_prior()
+    assert len(prior) == 40 and all(r.shape == (3, 2) and (r[:, 0] < r[:, 1]).all()
+                                    for r in prior.values())
+    unit = _box(np.random.default_rng(1), (1.2, 1.2, 1.2))
+    s = plausible_scale(unit, 'cup')
+    assert 0.03 < s < 0.2                       # a cup is about 10 cm, not 1.2 m
+    assert plausible_scale(unit, 'no_such_class') == 1.0
+    assert fit_rule(-10.0) is None and fit_rule(DEFAULT_FIT_THRESHOLD) == DEFAULT_FIT_THRESHOLD
+
+
+def _layer(meta: dict, names: list[str]) -> TaughtLayer:
+    z = torch.nn.functional.normalize(torch.eye(4)[[0, 0, 1, 1, 2, 3]] + 0.01, dim=1)
+    return TaughtLayer.build(meta, names, z, torch.tensor([0, 0, 1, 1, 2, 3]))
+
+
+def test_taught_block_is_redivided_by_prototype_and_size_and_built_classes_by_the_prior() -> None:
+    from point_gn_ros.bank.taught import add_taught
+    names = ['cup', 'wardrobe', 'thing_a', 'thing_b']
+    small, big = np.log([0.1, 0.1, 0.1, 0.03, 0.03, 0.03]), np.log([1.0, 1.0, 1.0, .3, .3, .3])
+    meta = add_taught({}, 'thing_a', torch.nn.functional.normalize(torch.eye(4)[[2, 2]], dim=1),
+                      np.stack([small, small]))
+    meta = add_taught(meta, 'thing_b', torch.nn.functional.normalize(
+        torch.tensor([[0.0, 0.0, 1.0, 0.2]]), dim=1), big[None])
+    assert meta[KEY]['thing_a']['n'] == 2 and meta[KEY]['thing_a']['sn'] == 2
+    layer = _layer(json.loads(json.dumps(meta)), names)      # survives the JSON round trip
+    assert layer.active and sorted(layer.taught.tolist()) == [2, 3]
+    prob = torch.full((1, 4), 0.25)
+    z = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0, 0.1]]), dim=1)
+    # nearly the same shape cosine to both taught classes: the size decides
+    p_small, _ = layer.apply(prob, z, small[None])
+    p_big, _ = layer.apply(prob, z, big[None])
+    assert p_small[0, 2] > 0.9 * (p_small[0, 2] + p_small[0, 3])
+    assert p_big[0, 3] > 0.9 * (p_big[0, 2] + p_big[0, 3])
+    # a 10 cm object is a plausible cup and an implausible wardrobe
+    assert p_small[0, 0] > 10 * p_small[0, 1]
+    # without sizes the taught block is re-divided by the prototypes only, built ones kept
+    p_none, fit = layer.apply(prob, torch.nn.functional.normalize(
+        torch.tensor([[0.0, 0.0, 1.0, -0.2]]), dim=1), None)
+    assert p_none[0, 2] > p_none[0, 3] and torch.allclose(p_none[0, :2], prob[0, :2])
+    assert fit.shape == (1,)
+    # a query unlike every taught mean keeps the head's division of the taught block
+    head = torch.tensor([[0.1, 0.1, 0.2, 0.6]])
+    p_far, _ = layer.apply(head, torch.eye(4)[[0]], None)
+    assert torch.allclose(p_far, head, atol=1e-3)
+
+
+@pytest.fixture(scope='module')
+def default_recognizer():
+    from point_gn_ros.recognizer import Recognizer
+    return Recognizer.from_bank(None)
+
+
+def test_garbage_and_impossible_sizes_are_unknown_at_the_default_rule(default_recognizer) -> None:
+    from point_gn_ros.recognizer import Recognizer
+    rec = Recognizer(default_recognizer.bank, encoder=default_recognizer.encoder,
+                     fit_threshold=fit_rule(DEFAULT_FIT_THRESHOLD))
+    rng = np.random.default_rng(0)
+    garbage = rng.normal(size=(500, 3)).astype('>f4').view('<f4').astype(np.float32)
+    garbage = garbage[np.isfinite(garbage).all(1)]
+    huge = _box(rng, (300.0, 200.0, 150.0), 800)
+    res = rec.classify_clouds([garbage, huge])
+    assert (res.labels == -1).all(), res.fit
+    # the same rule keeps a plausibly sized object
+    from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
+    objs = load_demo_objects()
+    i = objs.class_names.index('chair')
+    chair = place_in_sensor_frame(objs.xyz[int(np.flatnonzero(objs.labels == i)[0])], rng,
+                                  class_name='chair')
+    assert rec.classify_clouds([chair]).labels[0] != -1
+
+
+def test_fewshot_bank_runs_the_teach_and_query_protocol(tmp_path: Path, capsys) -> None:
+    if not TABLETOP.is_dir():
+        pytest.skip(f'{TABLETOP} absent (the shared tabletop data set)')
+    from point_gn_ros.cli import main
+    for name in ('fork', 'plate', 'cocacola'):
+        (tmp_path / name).mkdir()
+        for f in sorted((TABLETOP / name).glob('*.npy'))[:8]:
+            (tmp_path / name / f.name).write_bytes(f.read_bytes())
+    assert main(['fewshot', str(tmp_path), '--bank', 'default', '--shots', '3', '--draws', '2',
+                 '--json']) == 0
+    rep = json.loads(capsys.readouterr().out)
+    summ = rep['summary']
+    assert rep['metric_size'] and rep['shots'] == 3 and len(rep['per_draw']) == 2
+    for key in ('accuracy', 'built_share', 'nearest_mean', 'geometry', 'auroc_fit',
+                'auroc_top_probability', 'unseen_rejected', 'taught_rejected',
+                'volume_rejected'):
+        assert 0.0 <= summ[key]['mean'] <= 1.0, key
+    assert summ['volume_rejected']['mean'] == 0.0        # real views are surfaces
+    # three distinct objects, sizes in metres: taught they are told apart
+    assert summ['accuracy']['mean'] >= 0.8
+
+
+def test_bank_add_keeps_measured_sizes_in_metres_and_none_without_units(
+        small_bank_path: Path, tmp_path: Path) -> None:
+    from point_gn_ros.bank.enroll import BankFile
+    from point_gn_ros.cli import main
+    rng = np.random.default_rng(3)
+    folder = tmp_path / 'carton'
+    folder.mkdir()
+    for i in range(3):                           # a 10 x 5 x 20 cm carton, anywhere
+        np.save(folder / f'{i}.npy', _box(rng, (0.1, 0.05, 0.2), 600) + rng.normal(size=3))
+    out_m, out_none = tmp_path / 'm.npz', tmp_path / 'none.npz'
+    assert main(['bank', 'add', str(small_bank_path), str(folder), '--class', 'carton',
+                 '-o', str(out_m)]) == 0
+    rec = BankFile.load(out_m).bank.meta[KEY]['carton']
+    assert rec['n'] == 3 and rec['sn'] == 3
+    assert np.allclose(np.exp(rec['smean'][:3]), [0.2 * 0.96, 0.1 * 0.96, 0.05 * 0.96],
+                       rtol=0.1)
+    assert main(['bank', 'add', str(small_bank_path), str(folder), '--class', 'carton',
+                 '--units', 'none', '-o', str(out_none)]) == 0
+    rec = BankFile.load(out_none).bank.meta[KEY]['carton']
+    assert rec['n'] == 3 and 'sn' not in rec
+
+
+def test_node_enrollment_engine_keeps_the_recognizers_measured_sizes(tmp_path: Path) -> None:
+    from point_gn_ros.bank.enroll import BankFile
+    from point_gn_ros.bank.live import LiveBank
+    from point_gn_ros.bank.store import FeatureBank
+    from point_gn_ros.bank.transform import FeatureTransform
+    from point_gn_ros.core.config import EncoderConfig
+    from point_gn_ros.core.size import size_descriptors
+    from point_gn_ros.node.enroll_engine import EnrollEngine
+
+    dim = EncoderConfig().feature_dim
+
+    class Rec:                                   # the Recognizer's encode / sizes contract
+        def __init__(self, metric: bool) -> None:
+            self.metric = metric
+
+        def encode(self, clouds: list[np.ndarray], augment: str = 'none') -> torch.Tensor:
+            return torch.stack([torch.full((dim,), float(c[0, 0])) + torch.arange(dim)
+                                for c in clouds])
+
+        def sizes(self, clouds: list[np.ndarray]) -> np.ndarray | None:
+            return size_descriptors(clouds) if self.metric else None
+
+    raw = torch.randn(12, dim, generator=torch.Generator().manual_seed(0))
+    tf = FeatureTransform.fit(raw, 'none')
+    bank = FeatureBank(features=tf(raw), labels=torch.arange(12) % 3, class_names=['a', 'b', 'c'],
+                       config=EncoderConfig(), transform=tf, gamma=10.0)
+    rng = np.random.default_rng(4)
+    clouds = [_box(rng, (0.3, 0.1, 0.5), 200) for _ in range(5)]
+    for metric in (True, False):
+        live = LiveBank(BankFile.of(bank, 'float32'), lambda active: active.num_classes)
+        eng = EnrollEngine(live, lambda snap, res: None, log=lambda text: None,
+                           warn=lambda key, text: None, chunk=2, max_pending=100,
+                           capture_max=5, min_points=4)
+        assert eng.submit('bin', clouds, 'test')[0]
+        while eng.step(Rec(metric)):              # three steps of <= 2 clouds
+            pass
+        eng.flush(10.0)
+        rec = live.current().bank.meta[KEY]['bin']
+        eng.close()
+        assert rec['n'] == 5
+        if metric:
+            assert rec['sn'] == 5 and np.allclose(rec['smean'],
+                                                  size_descriptors(clouds).mean(0), atol=1e-5)
+        else:
+            assert 'sn' not in rec
