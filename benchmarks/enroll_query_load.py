@@ -7,7 +7,7 @@ teaches --classes new classes, one every --every seconds: set `enroll_class`, pu
 before and while teaching, the time until every class is listed, the node's RSS and its
 enrollment counters.
 
-Run: python scripts/enroll_query_load.py [--classes 100] [--rate 10] [--examples 5]
+Run: python benchmarks/enroll_query_load.py [--classes 100] [--rate 10] [--examples 5]
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ Starts the node (shipped bank unless --bank; --enrollment turns enrollment on), 
    keep coming at --cycle-rate per second (those sent while inactive are not answered).
 Prints answered / lost, latency, the node's RSS and thread count before and after each part.
 
-Run: python scripts/node_soak.py [--seconds 120] [--rate 30] [--cycles 50] [--enrollment]
+Run: python benchmarks/node_soak.py [--seconds 120] [--rate 30] [--cycles 50] [--enrollment]
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ re-divide the taught block) are scored on:
 and the fit rule (fit < 0 -> unknown) on (c) the same sized train scans against the shipped bank.
 A knob value is kept only if it holds on both data sets.
 
-usage: scripts/size_knob_study.py [--cache DIR] [--draws 3]
+usage: experiments/size_knob_study.py [--cache DIR] [--draws 3]
 """
 
 from __future__ import annotations

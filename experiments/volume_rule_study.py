@@ -14,7 +14,7 @@ the default rule (> DEFAULT_VOLUME_THRESHOLD -> unknown) rejects:
   reported         complete ModelNet40 objects (1,024 points on the whole CAD surface, inner
                    faces included: no sensor sees this) at a plausible size
 
-usage: scripts/volume_rule_study.py [--objects 300] [--seed 0]
+usage: experiments/volume_rule_study.py [--objects 300] [--seed 0]
 """
 
 from __future__ import annotations

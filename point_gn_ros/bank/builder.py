@@ -148,7 +148,7 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
     if sel.heldout_novelty is not None:
         # The default unknown rule thresholds the calibrated top-1 probability: on a pseudo
         # open set of the train split it separated unseen classes better than the novelty
-        # (AUROC 0.850 vs 0.760, scripts/novelty_study.py). Novelty's own threshold is kept
+        # (AUROC 0.850 vs 0.760, experiments/novelty_study.py). Novelty's own threshold is kept
         # for Classifier(novelty_threshold=...).
         meta['unknown_calibration'] = calibrate_unknown(sel.heldout_scores, false_reject_rate)
         meta['novelty_calibration'] = calibrate_novelty(sel.heldout_novelty, false_reject_rate)

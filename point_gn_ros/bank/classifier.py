@@ -56,7 +56,7 @@ SEARCHES = ('auto', 'exact', 'indexed')
 # 'auto' indexes banks this large. Below it the exact scan stays affordable (shipped bank,
 # 9,843 x 640: 2.8-3.5 ms a lone query exact, 1.2-2.0 indexed; about equal per query in
 # batches of 16), its labels stay bit-for-bit those of the published figures, and no index
-# is built per enrollment (BENCHMARKS.md "Large banks").
+# is built per enrollment (benchmarks/log "Large banks").
 INDEX_MIN_ENTRIES = 20_000
 # Upper bound on queries x bank entries held at once (float32 similarity block).
 _MAX_BLOCK = 1 << 24

@@ -16,7 +16,7 @@ covariance, pi_k the built classes' entry shares), pairwise against each one's o
 with P = Sigma_a^-1 the kept precision, coef = P mu, v = mu_c - mu_k (so Pv = coef_c - coef_k),
 a the LDA shrinkage and tau = tr(Sigma_a) / D: no (D, D) product per enrollment, one
 Cholesky of P per head (cached). It models the LDA part of the fused score only; the budget
-itself is chosen by train-only CV (scripts/instance_cv.py --budgets).
+itself is chosen by train-only CV (experiments/instance_cv.py --budgets).
 """
 
 from __future__ import annotations

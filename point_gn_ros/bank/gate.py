@@ -3,7 +3,7 @@
 A sectioned bank (bank/store.py, `FeatureBank.views`) holds complete objects and single-view
 scans as two sections, each with its own transform and head. A whole CAD-like object and
 one side of it look different to the encoder, and one head fitted on both serves neither
-well (BENCHMARKS.md, "Two-section bank"). The gate is a closed-form two-class LDA (complete
+well (benchmarks/log, "Two-section bank"). The gate is a closed-form two-class LDA (complete
 vs scan) on its own standardised, PCA-projected, L2-normalised features, with equal priors
 (the mix of complete objects and scans a robot will send is not the bank's mix):
 
@@ -22,7 +22,7 @@ from point_gn_ros.bank.head import CovarianceFit
 from point_gn_ros.bank.transform import FeatureTransform
 
 # Chosen by grouped 5-fold CV on ModelNet40 train (every 3rd object, complete + 4 HPR scans;
-# `scripts/gated_study.py --gate-grid`): all 1,620 dims (no PCA), shrinkage 0.001, equal
+# `experiments/gated_study.py --gate-grid`): all 1,620 dims (no PCA), shrinkage 0.001, equal
 # priors: 95.9 % of complete objects and 99.8 % of scans routed right (256 dims: 94.5 / 99.7;
 # 64 dims with the bank's 1:4 priors: 90.2 / 99.5). Without PCA the gate is two vectors.
 GATE_DIMS: int | None = None

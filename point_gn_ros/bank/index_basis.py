@@ -16,12 +16,12 @@ import torch
 
 # Default coarse width: the fewest coordinates (a multiple of 32) holding this share of the
 # bank's energy: 128 of 512 for issue 13's synthetic bank, 192 of 224 for the whitened
-# sensor bank, 512 of 640 for the shipped (whitened) one (BENCHMARKS.md "Large banks").
+# sensor bank, 512 of 640 for the shipped (whitened) one (benchmarks/log "Large banks").
 COARSE_ENERGY = 0.9
 # Bits a coarse code: 4 (codes in [-7, 7], half the bytes of 8) or 8 ([-127, 127]). On the
 # shipped scan section (288 of 320 dims) 4 bits kept 8 bits' fidelity against the exact
 # search (0 of 9,843 train and 0 of 4,936 test labels differ), and its coarse pass after
-# idle time takes 1.0-1.2 ms instead of 1.7-2.2 (BENCHMARKS.md, "Third session of 2026-12-03").
+# idle time takes 1.0-1.2 ms instead of 1.7-2.2 (benchmarks/log, "Third session of 2026-12-03").
 COARSE_BITS = 4
 _CODE_TOP = {4: 7, 8: 127}      # bits -> the largest |code|
 # Rows used to find the principal axes (a sample: the rotation only steers the coarse

@@ -4,7 +4,7 @@ A node at a sensor's rate classifies one object at a time, with the CPUs idle in
 The torch path (bank/head.py) spends a lone query in ~40 small ops, and after 33 ms of
 idle time each starts with its code and data out of cache: the shipped bank's complete
 section took 2.9-3.5 ms instead of 1.2-1.8 back to back, a tiny softmax 135 us instead of
-3 (BENCHMARKS.md, "Second session of 2026-12-03"). Here a section is two C calls around
+3 (benchmarks/log, "Second session of 2026-12-03"). Here a section is two C calls around
 its search (the exact scan of bank_dots or the index's candidates), with the same
 formulas: probabilities within ~1e-6 of the torch path, labels the same.
 
@@ -131,7 +131,7 @@ class LoneSection:
         order); lda_in (B, d): the LDA's input rows (standardised for a wide LDA, else
         transformed). Each row as `evaluate` finishes a lone query: the torch path's ~20
         ops over (B, N) took ~0.15 ms a row at the shipped bank, this one ~0.08
-        (BENCHMARKS.md, "third session of 2026-12-05"). Exact sections only (index None).
+        (benchmarks/log, "third session of 2026-12-05"). Exact sections only (index None).
         """
         sims = np.ascontiguousarray(sims, dtype=np.float32)
         lda_in = np.ascontiguousarray(lda_in, dtype=np.float32)

@@ -2,7 +2,7 @@
 
 A class taught from a few looks at ONE object (issue 12: "my toolbox") is a tight cluster;
 the discriminant head sees only its class mean and the shared covariance, so scans of other
-objects of a similar category drift into it (the "scan drop" of BENCHMARKS.md). The bank's
+objects of a similar category drift into it (the "scan drop" of benchmarks/log). The bank's
 build holds 8 single-view scans of every train object, so it knows how far scans of one
 object scatter around their own mean, and where every built object's mean lies.
 
@@ -19,7 +19,7 @@ and its log-probability moves by -(lam t_I + theta), then the rows are renormali
 the taught object has t_I well below 0 (boost); one of another object of a built class has
 t_I > 0 (damped). Built classes' log-probabilities never move, so with no taught class the
 probabilities are exactly the head's. r, alpha, lam and theta were chosen by nested CV on
-the train split only (scripts/object_test_study.py, BENCHMARKS.md).
+the train split only (experiments/object_test_study.py, benchmarks/log).
 
 The built objects' class names are kept: an object of a class no longer in the bank, or
 removed and re-taught, is not a "built object" any more and is left out of the minimum.
@@ -40,7 +40,7 @@ from point_gn_ros.bank.validate import parse_meta
 if TYPE_CHECKING:
     from point_gn_ros.bank.store import FeatureBank
 
-# Chosen by scripts/object_test_study.py (train split, 12 rounds, rule fixed before scoring).
+# Chosen by experiments/object_test_study.py (train split, 12 rounds, rule fixed before scoring).
 OBJECT_RANK = 32
 OBJECT_ALPHA = 0.01
 OBJECT_LAM = 0.2

@@ -42,7 +42,7 @@ GammaPolicy = Literal['keep', 'cv', 'auto']
 LdaPrior = Literal['entries', 'balanced', 'typical']
 LDA_PRIORS: tuple[str, ...] = get_args(LdaPrior)
 # Largest class-size prior exponent accepted (beyond 2 an enrolled class takes over its
-# category's queries: scripts/instance_cv.py).
+# category's queries: experiments/instance_cv.py).
 MAX_VOTE_PRIOR = 4.0
 CalibrationPolicy = Literal['keep', 'recalibrate', 'auto']
 

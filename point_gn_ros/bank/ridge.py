@@ -18,7 +18,7 @@ rows lost 2-15 points by CV), so builder and enrollment pass the stored rows.
 An enrollment cannot keep A cheaply: solving only for the new rows with the old ones held
 fixed (the m x m block step) cost held-out complete objects 1.0-1.3 points and, with the
 default's wide kernel, pulled others to the enrolled classes, while the full refit cost
-nothing (BENCHMARKS.md); the full refit takes seconds on 10k entries. So an enrollment
+nothing (benchmarks/log); the full refit takes seconds on 10k entries. So an enrollment
 (`RefitPolicy.ridge`) either refits A in full ('full': `point_gn bank add`), or serves the
 head without the term at once, with that head's own CV temperature, and marks the full refit
 pending ('off': the node; bank/live.py runs `refit_pending` in the background and publishes

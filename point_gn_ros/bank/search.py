@@ -17,7 +17,7 @@ this core's ~28 GB/s). Instead:
 
 Entries outside the candidates are far enough below the best that their votes barely
 count; when one would have changed the label, the labels differ: `bench` and
-`scripts/search_agreement.py` report how often against the full float32 search.
+`benchmarks/search_agreement.py` report how often against the full float32 search.
 
 Enrollment: a new bank version that only appends rows or drops a class derives its index
 from the previous one (`BankIndex.derive`: the basis, i.e. rotation and int8 scales, is

@@ -2,7 +2,7 @@
 
 One head fitted on complete objects and their scans together serves neither well: its
 knobs, PCA and within-class covariance are dominated by the scans (4 per object), and
-complete objects lose 2 points (BENCHMARKS.md, "Single-view scans"). A two-section bank
+complete objects lose 2 points (benchmarks/log, "Single-view scans"). A two-section bank
 keeps the complete objects as the main section (exactly the complete-object bank: own PCA
 width, whitening, LDA, gamma and temperature, all chosen by CV on complete objects) and the
 scans as a second section (own knobs, chosen by CV grouped by source object); a gate

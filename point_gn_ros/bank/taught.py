@@ -24,7 +24,7 @@ exactly as it is (ModelNet40 figures unchanged).
 Fit (for the unknown rule): max_c (cos(z, m_c) + W / KAPPA plaus_c) over every class with a
 mean (built classes: the mean of their bank rows, size from the prior) -- how like its
 nearest class the query is in shape and size. Knobs chosen by CV on the tabletop set
-(scripts/size_knob_study.py, docs/SIZE.md).
+(experiments/size_knob_study.py, docs/SIZE.md).
 """
 
 from __future__ import annotations

@@ -500,7 +500,7 @@ def main(args: list[str] | None = None) -> int:
         else:
             node.get_logger().info('waiting for a lifecycle manager (autostart is false)')
         # One thread: rclpy's multi-threaded executor tripled the latency at 100 objects/s
-        # (BENCHMARKS.md); services that wait (enrollment saves) are coroutines instead.
+        # (benchmarks/log); services that wait (enrollment saves) are coroutines instead.
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()

@@ -481,7 +481,7 @@ class Enrollment(ManagedEntity):
         """The committer's (ok, message), awaited without holding the executor.
 
         The node spins a single-threaded executor (a multi-threaded one tripled the
-        latency, BENCHMARKS.md); a service that blocked on a save would stall every input
+        latency, benchmarks/log); a service that blocked on a save would stall every input
         callback meanwhile, so it yields until the committer is done instead.
         """
         done = RclpyFuture(executor=self.node.executor)

@@ -3,7 +3,7 @@
 A configured node holds ~185,000 objects the cyclic collector tracks (torch, numpy, rclpy,
 the bank's metadata), none of which is ever garbage. Every few hundred messages a full
 (generation 2) collection walks all of them: ~100 ms holding the GIL, so the worker and the
-executor both stall and a handful of answers arrive late (`scripts/node_path_time.py` under
+executor both stall and a handful of answers arrive late (`benchmarks/node_path_time.py` under
 a gc callback: a 90 ms pause in 900 messages). `gc.freeze()` moves what exists once the node
 is configured into a permanent generation the collector skips; what is created later
 (messages, answers, enrolled banks) is collected as before, and reference counting frees

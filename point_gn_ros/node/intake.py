@@ -1,7 +1,7 @@
 """Input messages taken off DDS by a thread of their own, not by the node's executor.
 
 rclpy's executor costs ~1.2 ms of Python per message it dispatches in this node (it rebuilds
-its wait set over every service, timer and subscription each time: BENCHMARKS.md, "where
+its wait set over every service, timer and subscription each time: benchmarks/log, "where
 the node's CPU goes"), so a burst of 1,000 clouds/s took more than a core before any
 encoding. The input subscriptions are therefore kept out of the executor (a callback group
 that never lets it run them) and one intake thread waits on them alone and takes every

@@ -16,7 +16,7 @@
  * by the same chain (init_rows); elsewhere the rows are read and transposed. Each
  * channel's max and sum are kept per lane and
  * reduced over the lanes at the end of the centre. Features stay within a few 1e-6 of the
- * oracle (BENCHMARKS.md); a result depends on its centre only, so batches, threads and a
+ * oracle (benchmarks/log); a result depends on its centre only, so batches, threads and a
  * lone cloud's chunks stay bit-identical.
  */
 #include "pgn_common.h"

@@ -15,7 +15,7 @@
  * above (G holds cf[ch] / cf[ch - D]); lanes past an axis's n centres are masked off.
  * mx, sm, G: 2D + 16 floats of scratch. Blocks of 8 (sep_pass) take four neighbours a
  * pass, like pgn_stage_aggregate; blocks of 16 (sep_centre16) run each group of blocks
- * over all K neighbours with its max and sum in registers (BENCHMARKS.md, "2026-12-05,
+ * over all K neighbours with its max and sum in registers (benchmarks/log, "2026-12-05,
  * second session"). */
 static inline __attribute__((always_inline)) void sep_pass(
         const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
@@ -96,7 +96,7 @@ static inline __attribute__((always_inline)) void sep_group16(
      * smallest (pl) can win only where gs < -ph: w(pl) - w(ph) = (pl - ph)(pl + ph + gs).
      * The centre's feature g >= -0.17 (a gelu) and the nearest neighbour's Gaussian is
      * mostly near 1, so that is rare, and only such blocks take a second pass for pl: a min
-     * a step in every block cost more (BENCHMARKS.md, "2026-12-05, fifth session"). */
+     * a step in every block cost more (benchmarks/log, "2026-12-05, fifth session"). */
 #define PGN_STEP(u, t)                                                                     \
     do {                                                                                   \
         __m512 e_ = _mm512_load_ps(E16 + (t) * 16);                                        \

@@ -22,7 +22,7 @@
 #define PAD 16
 /* Separable Gaussians pay off from this many centres per axis: stage 2 on where the SIMD
  * builds' stage 1 runs in neighbour lanes; from 4 in the portable build, whose stage 1
- * would otherwise take an exponential a channel (14.6 -> 10.5 ms a cloud, BENCHMARKS.md). */
+ * would otherwise take an exponential a channel (14.6 -> 10.5 ms a cloud, benchmarks/log). */
 #ifndef SEP_MIN_N
 #if defined(__AVX512F__) || defined(PGN_AVX2)
 #define SEP_MIN_N 36
@@ -42,7 +42,7 @@ static inline float gelu(float x) { return 0.5f * x * (1.0f + erff(x * 0.7071067
  * t = u - the interval's middle; from u = 3.919206, where erf rounds to 1 in float, exactly
  * 1, so that gelu is exactly 0 below about -5.5 (0.99999994 there would leave x 3e-8).
  * Fitted here (least squares, reweighted towards equal ripple) in double: 6e-9 off erf, 6e-8
- * (an ulp near 1) as evaluated in float. libmvec's erff took 0.086 ms a cloud (BENCHMARKS.md).
+ * (an ulp near 1) as evaluated in float. libmvec's erff took 0.086 ms a cloud (benchmarks/log).
  * Elsewhere libmvec's erff. */
 static inline void gelu_rows(float *p, int64_t n) {
     float *q = (float *)__builtin_assume_aligned(p, 64);

@@ -129,7 +129,7 @@ void pgn_dots_i8(const int8_t *codes, const float *norms, int64_t n, int64_t d,
  * Byte b of a row's group g holds code 16 g + b in its low nibble and code 16 g + 8 + b in
  * its high one, each + 8. A bank stored as int4 has codes in [-7, 7], so half the bytes of
  * its int8 codes, and one load per 16 values instead of two: a lone query of the shipped
- * complete section takes ~0.5 ms less (BENCHMARKS.md, 2026-12-04). Every row's sum is
+ * complete section takes ~0.5 ms less (benchmarks/log, 2026-12-04). Every row's sum is
  * pgn_dots_i8's, operation for operation: the same 8-lane partial sums in index order
  * (d % 16 == 0: no tail), the same lane tree and division, so the cosines are the int8
  * scan's bit for bit. */

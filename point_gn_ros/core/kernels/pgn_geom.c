@@ -178,7 +178,7 @@ static void fps_from_avx2(const float *x, const float *y, const float *z, int64_
 /* fps_from_avx2 with 16 lanes and masks: the running (max, first index) per lane in four
  * chains of 16 points, merged once per step. Same distances (mul, then add: no
  * contraction), same first maximum. pgn_fps_from's block loop spent a horizontal max and
- * a branch per 16 points (BENCHMARKS.md, "FPS on AVX-512"). */
+ * a branch per 16 points (benchmarks/log, "FPS on AVX-512"). */
 static inline void fps_merge16(__m512 *bv, __m512i *bi, __m512 v, __m512i i) {
     const __mmask16 take = _mm512_cmp_ps_mask(v, *bv, _CMP_GT_OQ)
                            | (_mm512_cmp_ps_mask(v, *bv, _CMP_EQ_OQ)

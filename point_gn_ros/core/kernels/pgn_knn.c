@@ -206,7 +206,7 @@ void pgn_knn_in(const float *x, const float *y, const float *z, int64_t n, const
         return;
     }
 #endif
-    (void)sl;  /* on floats a slab saved no more than it cost (BENCHMARKS.md) */
+    (void)sl;  /* on floats a slab saved no more than it cost (benchmarks/log) */
     knn_f32(x, y, z, n, cx, cy, cz, s, k, nb, dist, keys, guess);
 }
 

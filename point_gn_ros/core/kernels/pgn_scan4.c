@@ -20,7 +20,7 @@
 enum { CHUNK = 64, MAX_CHUNKS = 16 };   /* rows of up to 2,048 codes take the SIMD paths */
 /* Software prefetch this many bytes ahead of the row being scanned: after idle time the
  * hardware prefetchers alone left a 11 MB pass at 1.46 ms instead of 1.01 (16 rows of
- * 288 codes ahead; BENCHMARKS.md, "Third session of 2026-12-03"). */
+ * 288 codes ahead; benchmarks/log, "Third session of 2026-12-03"). */
 enum { PREFETCH_AHEAD = 2304 };
 
 static int32_t query_sum(const int8_t *q, int64_t r) {

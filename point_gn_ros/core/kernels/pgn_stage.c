@@ -15,7 +15,7 @@
 static inline float exp_fast(float x) {
     /* k by a truncating conversion of t +- 1/2 (roundf's value but where t + 1/2 rounds up
      * to the next integer, which the reduction absorbs): it vectorises on plain SSE2, where
-     * roundf has no vector instruction and kept the loops scalar (BENCHMARKS.md) */
+     * roundf has no vector instruction and kept the loops scalar (benchmarks/log) */
     const float t = x * 1.44269504088896341f;
     const int32_t ki = (int32_t)(t + __builtin_copysignf(0.5f, t));
     const float kf = (float)ki;
