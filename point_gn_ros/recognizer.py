@@ -138,11 +138,12 @@ class Recognizer:
                   unknown_threshold: float | None = None,
                   threads: int | None = None, search: str = 'auto',
                   fit_threshold: float | None = None,
-                  volume_threshold: float | None = None) -> 'Recognizer':
+                  volume_threshold: float | None = None,
+                  metric_size: bool = True) -> 'Recognizer':
         """Load a bank (None: the shipped default) and build the matching encoder."""
         return cls(FeatureBank.load(path), device, resample, top_k, unknown_threshold,
                    threads=threads, search=search, fit_threshold=fit_threshold,
-                   volume_threshold=volume_threshold)
+                   volume_threshold=volume_threshold, metric_size=metric_size)
 
     @property
     def class_names(self) -> list[str]:

@@ -23,10 +23,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _classify(args: argparse.Namespace) -> int:
+    from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD, fit_rule
+    from point_gn_ros.core.surface import DEFAULT_VOLUME_THRESHOLD, volume_rule
     from point_gn_ros.datasets import read_points
     from point_gn_ros.recognizer import Recognizer
 
-    rec = Recognizer.from_bank(args.bank, top_k=args.top_k)
+    # the node's default unknown rules (docs/SIZE.md), so that it answers as the node does
+    rec = Recognizer.from_bank(args.bank, top_k=args.top_k,
+                               fit_threshold=fit_rule(DEFAULT_FIT_THRESHOLD),
+                               volume_threshold=volume_rule(DEFAULT_VOLUME_THRESHOLD))
     names = rec.class_names
     for path in args.files:
         xyz = to_z_up(read_points(path), args.up)
@@ -36,13 +41,15 @@ def _classify(args: argparse.Namespace) -> int:
         extent = (xyz.max(axis=0) - xyz.min(axis=0)).tolist() if len(xyz) else [0.0] * 3
         # Two-section banks: how likely the gate thinks this is a single-view scan.
         partial = None if res.partial is None else float(res.partial[0])
+        label = names[int(res.labels[0])] if res.labels[0] >= 0 else 'unknown'
         if args.json:
             print(json.dumps({'file': path, 'points': len(xyz), 'extent': extent,
+                              'label': label,
                               'top': [{'class': n, 'score': s} for n, s in top],
                               'partial': partial}))
         else:
             guesses = ', '.join(f'{n} {s:.2f}' for n, s in top)
             size = ' x '.join(f'{e:.2f}' for e in extent)
             seen = '' if partial is None else f' (single-view scan: {partial:.2f})'
-            print(f'{path}: {len(xyz)} points, extent {size}{seen}: {guesses}')
+            print(f'{path}: {len(xyz)} points, extent {size}{seen}: {label} ({guesses})')
     return 0
