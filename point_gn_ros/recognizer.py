@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 import os
 import time
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -144,6 +144,20 @@ class Recognizer:
         return cls(FeatureBank.load(path), device, resample, top_k, unknown_threshold,
                    threads=threads, search=search, fit_threshold=fit_threshold,
                    volume_threshold=volume_threshold, metric_size=metric_size)
+
+    @classmethod
+    def as_node(cls, path: str | os.PathLike[str] | None = None, *, metric_size: bool = True,
+                **kwargs: Any) -> 'Recognizer':
+        """`from_bank` with the node's default unknown rules (docs/SIZE.md).
+
+        What the offline tools use, so that they answer as a node at its defaults does.
+        metric_size: False for clouds without metric meaning (unit-sphere data).
+        """
+        from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD, fit_rule
+        from point_gn_ros.core.surface import DEFAULT_VOLUME_THRESHOLD, volume_rule
+        return cls.from_bank(path, fit_threshold=fit_rule(DEFAULT_FIT_THRESHOLD),
+                             volume_threshold=volume_rule(DEFAULT_VOLUME_THRESHOLD),
+                             metric_size=metric_size, **kwargs)
 
     @property
     def class_names(self) -> list[str]:

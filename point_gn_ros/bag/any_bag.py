@@ -136,7 +136,8 @@ def classify_offline(bag: BagClouds, bank: str | None = None, device: str = 'cpu
                      unknown_threshold: float | None = None,
                      min_points: int = DEFAULT_MIN_POINTS, segment_field: str = '',
                      no_segment_ids: tuple[str, ...] = ('negative', 'max'), up_axis: str = 'auto',
-                     top_k: int = 5) -> tuple[list[ObjectAnswer], list[str], dict[str, int]]:
+                     top_k: int = 5, metric_size: bool = True
+                     ) -> tuple[list[ObjectAnswer], list[str], dict[str, int]]:
     """Every object of the bag's messages, classified as the node would (no ROS graph).
 
     segment_field: '' = each message one object; a message without that field is one object
@@ -147,8 +148,8 @@ def classify_offline(bag: BagClouds, bank: str | None = None, device: str = 'cpu
     from point_gn_ros.pointcloud2 import decode_xyz, split_segments
     from point_gn_ros.recognizer import Recognizer
 
-    rec = Recognizer.from_bank(bank, device=device, top_k=top_k,
-                               unknown_threshold=unknown_threshold or None)
+    rec = Recognizer.as_node(bank, device=device, top_k=top_k,
+                             unknown_threshold=unknown_threshold or None, metric_size=metric_size)
     names = list(rec.class_names)
     typestore = _typestore()
     unseg = NoSegment.parse(no_segment_ids)

@@ -17,16 +17,13 @@ BATCH = 32   # the node's default max_batch
 
 def run_offline(contents: BagContents, bank: str | None = None, device: str = 'cpu',
                 unknown_threshold: float | None = None,
-                min_points: int = DEFAULT_MIN_POINTS, progress: bool = False) -> RunResult:
-    """Contents must have been read with keep_clouds=True."""
-    from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD, fit_rule
-    from point_gn_ros.core.surface import DEFAULT_VOLUME_THRESHOLD, volume_rule
+                min_points: int = DEFAULT_MIN_POINTS, progress: bool = False,
+                metric_size: bool = True) -> RunResult:
+    """Contents must have been read with keep_clouds=True. Answers as the node at its defaults."""
     from point_gn_ros.recognizer import Recognizer
 
-    # the node's default unknown rules (docs/SIZE.md), as the node answers
-    rec = Recognizer.from_bank(bank, device=device, unknown_threshold=unknown_threshold or None,
-                               fit_threshold=fit_rule(DEFAULT_FIT_THRESHOLD),
-                               volume_threshold=volume_rule(DEFAULT_VOLUME_THRESHOLD))
+    rec = Recognizer.as_node(bank, device=device, unknown_threshold=unknown_threshold or None,
+                             metric_size=metric_size)
     lut = map_class_ids(list(rec.class_names), contents.class_names)
     keys, clouds = [], []
     for m in contents.messages:

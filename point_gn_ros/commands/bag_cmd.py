@@ -80,7 +80,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         'report')
     how = r.add_mutually_exclusive_group()
     how.add_argument('--offline', action='store_true',
-                     help='no ROS graph: classify with the core library (same report)')
+                     help='no ROS graph: classify with the core library (same report), as '
+                          'a node at its defaults')
+    r.add_argument('--no-units', action='store_true',
+                   help='with --offline: the clouds are not in metres (e.g. unit-sphere '
+                        'ModelNet40): no size evidence, as the node with metric_size false')
     how.add_argument('--listen-only', action='store_true',
                      help='do not publish (play the bag with ros2 bag play); listen and match')
     how.add_argument('--lockstep', action='store_true',
@@ -207,7 +211,8 @@ def _replay(args: argparse.Namespace) -> int:
     if args.offline:
         from point_gn_ros.bag.offline import run_offline
         result = run_offline(contents, args.bank, args.device, args.unknown_threshold,
-                             args.min_points, progress=sys.stderr.isatty())
+                             args.min_points, progress=sys.stderr.isatty(),
+                             metric_size=not args.no_units)
     else:
         from point_gn_ros.bag.replay import ReplayOptions, run_replay
         mode = 'listen-only' if args.listen_only else 'lockstep' if args.lockstep else 'rate'
@@ -238,7 +243,7 @@ def _replay_answers(args: argparse.Namespace) -> int:
     if args.offline:
         answers, names, rejected = classify_offline(
             bag, args.bank, args.device, args.unknown_threshold, args.min_points,
-            args.segment_field, up_axis=args.up_axis)
+            args.segment_field, up_axis=args.up_axis, metric_size=not args.no_units)
         answered = len({a.message for a in answers})
         header |= {'mode': 'offline', 'rejected': rejected}
         answer_msgs = _offline_answer_msgs(bag, answers, names) if args.output_bag else []

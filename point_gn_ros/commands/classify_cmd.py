@@ -18,20 +18,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument('--bank', default=None, help='bank file (default: the shipped bank)')
     c.add_argument('--top-k', type=int, default=3, help='classes to list per file (default 3)')
     add_up_arg(c)
+    c.add_argument('--no-units', action='store_true',
+                   help='the files are not in metres (e.g. unit-sphere data): no size evidence')
     c.add_argument('--json', action='store_true', help='print JSON lines')
     c.set_defaults(func=_classify)
 
 
 def _classify(args: argparse.Namespace) -> int:
-    from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD, fit_rule
-    from point_gn_ros.core.surface import DEFAULT_VOLUME_THRESHOLD, volume_rule
     from point_gn_ros.datasets import read_points
     from point_gn_ros.recognizer import Recognizer
 
-    # the node's default unknown rules (docs/SIZE.md), so that it answers as the node does
-    rec = Recognizer.from_bank(args.bank, top_k=args.top_k,
-                               fit_threshold=fit_rule(DEFAULT_FIT_THRESHOLD),
-                               volume_threshold=volume_rule(DEFAULT_VOLUME_THRESHOLD))
+    rec = Recognizer.as_node(args.bank, top_k=args.top_k, metric_size=not args.no_units)
     names = rec.class_names
     for path in args.files:
         xyz = to_z_up(read_points(path), args.up)
