@@ -240,7 +240,10 @@ def test_parameters_are_described_and_read_only_unless_live(harness: Harness, io
     by_name = {d.name: d for d in described}
     assert set(by_name) == set(names)
     assert all(d.description for d in described)
-    assert {d.name for d in described if not d.read_only} == LIVE | {'class_names'}
+    # allow_parameter_changes is false here (config/classifier.yaml): no peer may change
+    # a live parameter either (test_node_ros starts a node with it true: LIVE writable)
+    assert {d.name for d in described if not d.read_only} == {'class_names'}
+    assert LIVE <= set(by_name)
     assert by_name['top_k'].integer_range[0].from_value == 1
     assert by_name['unknown_threshold'].floating_point_range
     values = call(GetParameters, 'get_parameters', GetParameters.Request(
