@@ -13,7 +13,7 @@ answered / answered twice = stream messages answered (each must be exactly once)
 errors from the node's diagnostics.
 
 Run: python benchmarks/enroll_latency.py [--bank PATH] [--rate 30] [--examples 20] [--seconds 6]
-     [--search auto|exact|indexed] [--augment d4] [--vote-prior BETA] [--lda-prior balanced]
+     [--search auto|exact|indexed] [--augment d4] [--lda-prior balanced]
      [--lda-debias F] [--steal-budget RHO]
 (needs the shared ModelNet40 data; ROS_DOMAIN_ID honoured via test/node_testing.py).
 """
@@ -46,8 +46,6 @@ def main(argv: list[str] | None = None) -> int:
                    help="the node's bank search parameter")
     p.add_argument('--augment', default='none', choices=('none', 'mirror', 'rot4', 'd4'),
                    help='node parameter enroll_augment (frames stored per example)')
-    p.add_argument('--vote-prior', type=float, default=0.0,
-                   help='node parameter enroll_vote_prior (bank/vote_prior.py)')
     p.add_argument('--lda-prior', default='entries', choices=('entries', 'balanced', 'typical'),
                    help='node parameter enroll_lda_prior')
     p.add_argument('--lda-debias', type=float, default=0.0,
@@ -73,7 +71,6 @@ def main(argv: list[str] | None = None) -> int:
                         'enable_enrollment': True, 'enroll_class': 'my_sofa',
                         'search': args.search,
                         'enroll_augment': args.augment,
-                        'enroll_vote_prior': float(args.vote_prior),
                         'enroll_lda_prior': args.lda_prior,
                         'enroll_lda_debias': float(args.lda_debias),
                         'enroll_steal_budget': float(args.steal_budget)}, log)
@@ -119,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
                        and int(decode_classifications(ms[0][1])['class_id'][0]) == new_id)
         listed = [t for t, data in names_at if 'my_sofa' in data.split('\n')]
         # answers after the new class list: how many before one names the class (a scan of
-        # the enrolled object is not always called it: bank/vote_prior.py, issue 12)
+        # the enrolled object is not always called it)
         after = sorted(ms[0] for k, ms in got.items() if k in sent and listed
                        and ms[0][0] >= listed[0])
         misses = next((i for i, (_, m) in enumerate(after)

@@ -21,7 +21,7 @@ Nothing here is tuned on the test split: the bank's knobs were chosen by CV on t
 
 Run: python experiments/enroll_study.py [--bank PATH] [--json OUT] [--cache DIR] [--draws K]
      [--augment none|mirror|rot4|d4] [--view-protocol hpr|zbuffer] [--lda-prior balanced]
-     [--vote-prior BETA] [--lda-debias F] [--steal-budget RHO]
+     [--lda-debias F] [--steal-budget RHO]
      [--cv-augment] [--fuse-views [--pose-noise S]]
 """
 
@@ -67,9 +67,6 @@ def main(argv: list[str] | None = None) -> int:
                    help='frames each enrolled scan is stored in (core/augment.py)')
     p.add_argument('--lda-prior', choices=('entries', 'balanced', 'typical'), default='entries',
                    help="LDA class priors after each enrollment's refit (RefitPolicy)")
-    p.add_argument('--vote-prior', type=float, default=0.0, metavar='BETA',
-                   help="class-size prior exponent of the enrolled classes' kernel vote "
-                        '(RefitPolicy.vote_prior; chosen by experiments/instance_cv.py)')
     p.add_argument('--lda-debias', type=float, default=0.0, metavar='F',
                    help="share of a wide LDA's mean-noise correction for the enrolled classes "
                         '(RefitPolicy.lda_debias; chosen by experiments/instance_cv.py --debias)')
@@ -171,7 +168,7 @@ def study(args: argparse.Namespace, bf: BankFile, encoder) -> dict:
                                seed=args.seed + i), args.augment)])
     print(f'encoded {len(rest)} test objects twice in {time.perf_counter() - t0:.0f} s',
           file=sys.stderr)
-    policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior, vote_prior=args.vote_prior,
+    policy = RefitPolicy(gamma='auto', lda_prior=args.lda_prior,
                          lda_debias=args.lda_debias, lda_steal_budget=args.steal_budget)
     cv = None
     if args.cv_augment:
@@ -221,7 +218,7 @@ def study(args: argparse.Namespace, bf: BankFile, encoder) -> dict:
         'seed': args.seed,
         'bank': str(bf.bank.path), 'bank_version': snap.version, 'gamma': snap.bank.gamma,
         'augment': args.augment, 'view_protocol': args.view_protocol,
-        'lda_prior': args.lda_prior, 'vote_prior': args.vote_prior,
+        'lda_prior': args.lda_prior,
         'lda_debias': args.lda_debias,
         'lda_steal_budget': args.steal_budget,
         'fuse_views': args.fuse_views, 'pose_noise': args.pose_noise if args.fuse_views

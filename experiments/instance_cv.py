@@ -1,4 +1,4 @@
-"""Choose the enrolled-class vote prior (bank/vote_prior.py) by CV on the TRAIN split only.
+"""Choose the enrolled classes' LDA debias share and steal budget by CV on the TRAIN split only.
 
 Pseudo-enrollment on the default bank's own objects (no test object is read):
 - each round takes, per ModelNet10 category, one train object as a pseudo "new instance" and
@@ -13,8 +13,8 @@ Pseudo-enrollment on the default bank's own objects (no test object is read):
   `--other-scans random`, one new scan from a random viewpoint as enroll_study's existing-class
   scans), classified before and after the enrollment; the drop counts right-before-wrong-after
   minus the reverse.
-For each beta of the grid (0 = today's vote) the same enrolled banks are classified with the
-vote prior on the enrolled classes. The rule picks the largest instance accuracy whose
+The grid's first axis was the vote prior's exponent beta; CV chose 0 and the vote prior was
+removed (CHANGELOG), so beta is 0 throughout. The rule picks the largest instance accuracy whose
 existing-class drop stays <= --max-drop points on complete objects AND scans.
 Both sections' LDA is refitted without the held-out objects before anything is measured (as
 an enrollment refits it), with the build's entry-share priors; the enrollments refit with
@@ -48,7 +48,6 @@ from point_gn_ros.bank.enroll import (BankFile, RefitPolicy, add_examples, refit
 from point_gn_ros.bank.objects import ObjectTest
 from point_gn_ros.bank.refit import enrolled_debias
 from point_gn_ros.bank.live import refit_ridge_sections
-from point_gn_ros.bank.vote_prior import META_KEY
 from point_gn_ros.core.config import ENCODER_VERSION
 from point_gn_ros.core.fusion import fused_examples
 from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
@@ -62,7 +61,7 @@ from enroll_study import misregistered  # noqa: I001 - experiments/ is on sys.pa
 MODELNET = Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'modelnet40_1024'
 MODELNET10 = ('bathtub', 'bed', 'chair', 'desk', 'dresser', 'monitor', 'night_stand', 'sofa',
               'table', 'toilet')
-BETAS = (0.0, 0.25, 0.5, 0.75, 1.0)
+BETAS = (0.0,)
 
 
 def subset(bf: BankFile, keep_obj: np.ndarray, raw: np.ndarray) -> BankFile:
@@ -124,13 +123,10 @@ def refitted(bf: BankFile, policy: RefitPolicy) -> BankFile:
 
 
 def with_beta(bf: BankFile, beta: float, names: list[str], scope: str) -> BankFile:
-    """Both sections with the vote prior `beta` on `names` ('enrolled') or every class."""
-    def put(bank):  # noqa: ANN001, ANN202
-        listed = names if scope == 'enrolled' else list(bank.class_names)
-        return replace(bank, meta={**bank.meta, META_KEY: {'beta': beta, 'classes': listed}})
-    views = put(bf.bank.views)
-    return BankFile(replace(put(bf.bank), views=views), bf.stored,
-                    views=BankFile(views, bf.views.stored))
+    """The bank as it is: the vote prior (beta > 0) no longer exists."""
+    if beta:
+        raise SystemExit('the vote prior was removed: beta must be 0')
+    return bf
 
 
 def with_debias(bf: BankFile, f: float, budget: float = 0.0) -> BankFile:

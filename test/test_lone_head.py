@@ -52,7 +52,7 @@ def test_the_shipped_bank_answers_a_lone_query_as_a_batch_does() -> None:
     assert res.labels[0] == int(prob[0].argmax()) and res.partial is not None
 
 
-def test_whitened_lda_head_absent_class_and_vote_bias() -> None:
+def test_whitened_lda_head_and_absent_class() -> None:
     classes = 6
     feats, labels = synthetic_bank(2_000, 64, seed=1, classes=classes)
     labels = np.where(labels == 5, 4, labels)                # class 5: no entries
@@ -80,16 +80,6 @@ def test_whitened_lda_head_absent_class_and_vote_bias() -> None:
         assert (lone_prob[:, 5] == 0).all() and (prob[:, 5] == 0).all()
         torch.testing.assert_close(lone_prob, prob, atol=2e-6, rtol=0)
         torch.testing.assert_close(lone_novelty, novelty, atol=1e-6, rtol=0)
-    # a vote bias (bank/vote_prior.py) is added to the log vote on both paths
-    clf = Classifier(bank)
-    clf.vote_bias = torch.linspace(-1.0, 1.0, classes)
-    clf.lone = LoneSection.build(clf)
-    clf.compiled_finish = False
-    prob, _ = clf.evaluate(raw)
-    lone_prob, _, _ = _one_by_one(clf, raw)
-    torch.testing.assert_close(lone_prob, prob, atol=2e-6, rtol=0)
-    unbiased = Classifier(bank).evaluate(raw)[0]
-    assert (prob[:, :5].log() - unbiased[:, :5].log()).abs().max() > 0.5
 
 
 def test_what_the_compiled_path_does_not_cover_keeps_the_torch_path() -> None:

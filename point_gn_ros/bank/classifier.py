@@ -16,10 +16,6 @@ both sections and mixes them with the gate's p = probability that the query is a
 A plain-vote bank (format 1, or one CV chose the vote for) has probability = each
 class's share of the kernel votes, as before.
 
-Classes enrolled under `RefitPolicy.vote_prior` > 0 (listed in a section's meta
-'vote_prior') get a class-size prior on their vote (bank/vote_prior.py): a per-class bias
-on the log vote, the same for every search and batch. Banks without it: no bias at all.
-
 A two-section bank with an object test (bank/objects.py) then moves the probabilities of
 its taught classes (those enrollment created) by how much nearer the query is to the taught
 object than to any built one, and renormalises; with no taught class nothing moves.
@@ -49,7 +45,6 @@ from point_gn_ros.bank.lone import LoneGate, LoneSection
 from point_gn_ros.bank.refit import vote_to_z
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.bank.taught import TaughtLayer
-from point_gn_ros.bank.vote_prior import vote_log_bias
 
 UNKNOWN = -1
 SEARCHES = ('auto', 'exact', 'indexed')
@@ -198,8 +193,6 @@ class Classifier:
         self.search = make_search(self.search_kind, self.features, self.labels,
                                   bank.num_classes,
                                   None if previous is None else previous.search)
-        # Opt-in class-size prior of enrolled classes (bank/vote_prior.py); None: plain vote.
-        self.vote_bias = vote_log_bias(bank.meta, bank.class_names, bank.labels)
         # A sectioned bank: the scan section has its own classifier, mixed by the gate.
         self.views = None if bank.views is None else Classifier(
             bank.views, device, gamma=None, search=search, index_min_entries=index_min_entries,
@@ -311,9 +304,9 @@ class Classifier:
                                                             else z).numpy())
             return torch.from_numpy(prob), torch.from_numpy(novelty)
         if not self.head.lda_wide:
-            return self.head.evaluate_with(self.transform(features), self.search, self.vote_bias)
+            return self.head.evaluate_with(self.transform(features), self.search)
         z, x = self.transform.both(features)         # one standardisation for vote and LDA
-        return self.head.evaluate_with(z, self.search, self.vote_bias, x)
+        return self.head.evaluate_with(z, self.search, x=x)
 
     @torch.no_grad()
     def scores(self, features: torch.Tensor) -> torch.Tensor:

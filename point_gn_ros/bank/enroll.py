@@ -18,8 +18,6 @@ Metadata added (JSON, in the bank file):
   enrollments_compacted  how many older entries were dropped from `enrollments`
   augmented_entries  {class: entries beyond one per example} (augmented adds only; the
                  examples of a class = its entries minus this, see `example_counts`)
-  vote_prior     {beta, classes}: the enrolled classes whose kernel vote gets a class-size
-                 prior (RefitPolicy.vote_prior > 0 when they were created; bank/vote_prior.py)
   refit          how gamma / calibration were last decided {version, gamma, calibration, ...}
   taught         {class: {n, mean, [sn, smean, sm2]}}: each enrolled class's prototype and
                  measured size (bank/taught.py)
@@ -43,7 +41,6 @@ from point_gn_ros.bank.rows import append_rows
 from point_gn_ros.bank.store import FeatureBank, quantized
 from point_gn_ros.bank.taught import add_taught, drop_taught
 from point_gn_ros.bank.validate import class_name_problem
-from point_gn_ros.bank.vote_prior import is_listed, with_listed, without
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.core.size import SIZE_DIM
 from point_gn_ros.errors import PointGNError
@@ -186,8 +183,6 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
     extra = {} if k == 1 else {'examples': len(new) // k, 'augment': augment}
     meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups,
                 **extra)
-    if policy.vote_prior > 0 and (new_class or is_listed(meta, class_name)):
-        meta = with_listed(meta, policy.vote_prior, class_name)   # bank/vote_prior.py
     if sizes is not None and np.shape(sizes) != (len(new) // k, SIZE_DIM):
         raise EnrollError(f'sizes must be ({len(new) // k}, {SIZE_DIM}), got {np.shape(sizes)}')
     meta = add_taught(meta, class_name, z_new[::k], sizes)
@@ -230,8 +225,7 @@ def remove_class(bf: BankFile, class_name: str, source: str = 'api',
     labels = labels - (labels > cid).long()
     names = [n for n in bank.class_names if n != class_name]
     removed = int((~keep).sum())
-    meta = drop_taught(without(_log(bank, 'remove', class_name, removed, source, when),
-                               class_name), class_name)
+    meta = drop_taught(_log(bank, 'remove', class_name, removed, source, when), class_name)
     if class_name in meta.get('augmented_entries', {}):
         meta['augmented_entries'] = {c: n for c, n in meta['augmented_entries'].items()
                                      if c != class_name}

@@ -117,12 +117,10 @@ class Head:
         return self.evaluate_with(z, ExactSearch(bank_u, bank_labels, num_classes), x=x)
 
     def evaluate_with(self, z: torch.Tensor, search: 'VoteSearch',
-                      vote_bias: torch.Tensor | None = None, x: torch.Tensor | None = None
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
+                      x: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """`evaluate` with the kernel vote from `search` (exact or bank/search.py's index).
 
         z: (B, d) transformed queries -> probability (B, C), novelty (B,), float32.
-        vote_bias: optional (C,) added to the log vote (bank/vote_prior.py); None: none.
         x: (B, D) standardised rows (`FeatureTransform.standardized`), read by a wide LDA.
         """
         if z.shape[0] == 0:
@@ -136,8 +134,6 @@ class Head:
             fused = fused + self.ridge_weight * ridge
         else:
             fused, best = search.log_votes(u, self.gamma)
-        if vote_bias is not None:    # a class-size prior on the vote (-inf stays -inf)
-            fused = fused + vote_bias.to(fused.device)
         if self.lda_wide and x is None:
             raise ValueError('a wide-LDA head needs the standardised rows x')
         lda = self.lda_log_probs(x if self.lda_wide else z)

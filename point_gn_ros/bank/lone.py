@@ -66,7 +66,6 @@ class LoneSection:
         self.gamma, self.temperature = float(head.gamma), float(head.temperature)
         self.ridge = ridge
         self.ridge_gamma, self.ridge_weight = float(head.ridge_gamma), float(head.ridge_weight)
-        self.vote_bias = _f32(clf.vote_bias)
         use_lda = head.lda_coef is not None and head.fusion_weight != 0
         self.lda_coef = _f32(head.lda_coef) if use_lda else None
         self.lda_bias = _f32(head.lda_bias) if use_lda else None
@@ -149,7 +148,7 @@ class LoneSection:
         self.lib.pgn_head_finish(
             sims.ctypes.data, labels.ctypes.data, len(sims), c, self.counts.ctypes.data,
             self.gamma, _ptr(self.ridge), self.ridge_gamma, self.ridge_weight,
-            _ptr(self.vote_bias), lda_in.ctypes.data, len(lda_in), _ptr(self.lda_coef),
+            lda_in.ctypes.data, len(lda_in), _ptr(self.lda_coef),
             _ptr(self.lda_bias), self.fusion_weight, self.temperature, work.ctypes.data,
             prob.ctypes.data, novelty.ctypes.data)
 

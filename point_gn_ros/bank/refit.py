@@ -41,9 +41,6 @@ _ABSENT_BIAS = -1e4
 GammaPolicy = Literal['keep', 'cv', 'auto']
 LdaPrior = Literal['entries', 'balanced', 'typical']
 LDA_PRIORS: tuple[str, ...] = get_args(LdaPrior)
-# Largest class-size prior exponent accepted (beyond 2 an enrolled class takes over its
-# category's queries: experiments/instance_cv.py).
-MAX_VOTE_PRIOR = 4.0
 CalibrationPolicy = Literal['keep', 'recalibrate', 'auto']
 
 
@@ -68,9 +65,6 @@ class RefitPolicy:
     collected, not how often a class is seen) or 'typical' (the built classes keep their
     entry shares, so their answers do not move; each enrolled class, one not in the build's
     provenance, gets the mean share of a built class).
-    vote_prior: exponent beta of the kernel vote's class-size prior for classes this policy
-    creates by enrollment (bank/vote_prior.py; recorded in the bank): their vote is scaled
-    by (mean built-class entries / their entries)^beta. 0 (default): the plain vote, as built.
     lda_debias: share f of the mean-noise correction a wide LDA gives each enrolled class
     (one not in the build's provenance): its LDA bias += f tr(Sigma_a^-1 Sigma) / (2 n), n
     its entries (bank/lda.py `lda_noise_trace`). 0 (default): none; built classes never.
@@ -86,7 +80,6 @@ class RefitPolicy:
     cv_max_entries: int = AUTO_CV_MAX_ENTRIES
     duplicate_cosine: float = DUPLICATE_COSINE
     lda_prior: LdaPrior = 'entries'
-    vote_prior: float = 0.0
     lda_debias: float = 0.0
     lda_steal_budget: float = 0.0
     # A section with a kernel ridge term (bank/ridge.py) whose rows changed: 'off' serves the
@@ -95,9 +88,6 @@ class RefitPolicy:
     ridge: Literal['off', 'full'] = 'off'
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.vote_prior) and 0.0 <= self.vote_prior <= MAX_VOTE_PRIOR):
-            raise ValueError(f'vote_prior must be in [0, {MAX_VOTE_PRIOR:g}], got '
-                             f'{self.vote_prior!r}')
         check_debias(self.lda_debias, self.lda_steal_budget)
         if self.lda_prior not in LDA_PRIORS:
             raise ValueError(f'lda_prior must be one of {", ".join(LDA_PRIORS)}, got '
@@ -290,7 +280,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
                               'refitted in closed form' + (', knobs by CV' if sel else
                                                            ', knobs kept')),
                      'calibration_reason': cal_reason, 'min_examples': policy.min_examples,
-                     'lda_prior': policy.lda_prior, 'vote_prior': policy.vote_prior,
+                     'lda_prior': policy.lda_prior,
                      'lda_debias': policy.lda_debias,
                      'lda_steal_budget': policy.lda_steal_budget,
                      **({} if shares is None else {'lda_debias_shares': shares}),

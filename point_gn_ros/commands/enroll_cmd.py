@@ -48,11 +48,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='the inputs are views of ONE object in one fixed frame (odom, map): '
                         'also add their fused cloud and 8 scans simulated from it '
                         '(core/fusion.py); refused if the views do not overlap')
-    a.add_argument('--vote-prior', type=_beta, default=0.0, metavar='BETA',
-                   help='class-size prior exponent of the kernel vote for a class this add '
-                        'creates (bank/vote_prior.py): its vote is scaled by (mean built-class '
-                        'entries / its entries)^BETA, so a few-example instance is not '
-                        'outvoted by its category; 0 = plain vote (default), 0-4')
     a.add_argument('--lda-debias', type=_share, default=2.0, metavar='F',
                    help="share of a wide LDA's mean-noise correction for a class this add "
                         'creates (bank/lda.py lda_noise_trace): its LDA bias rises by F x '
@@ -119,7 +114,7 @@ def _policy(args: argparse.Namespace):
     from point_gn_ros.bank.enroll import RefitPolicy
     return RefitPolicy(gamma=args.gamma, calibration=args.calibration,
                        min_examples=args.min_examples, folds=args.folds,
-                       lda_prior=args.lda_prior, vote_prior=getattr(args, 'vote_prior', 0.0),
+                       lda_prior=args.lda_prior,
                        lda_debias=getattr(args, 'lda_debias', 0.0),
                        lda_steal_budget=getattr(args, 'steal_budget', 0.0),
                        ridge='full')   # offline: a kernel ridge term is refitted in full
@@ -144,16 +139,6 @@ def _budget(text: str) -> float:
     from point_gn_ros.bank.debias import MAX_BUDGET
     return _in_range(text, MAX_BUDGET)
 
-
-def _beta(text: str) -> float:
-    from point_gn_ros.bank.refit import MAX_VOTE_PRIOR
-    try:
-        beta = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
-    if not 0.0 <= beta <= MAX_VOTE_PRIOR:
-        raise argparse.ArgumentTypeError(f'{beta:g} must be in [0, {MAX_VOTE_PRIOR:g}]')
-    return beta
 
 
 def _read_inputs(args: argparse.Namespace) -> tuple[list, str]:

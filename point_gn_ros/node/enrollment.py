@@ -62,7 +62,7 @@ from point_gn_ros.bank.debias import MAX_BUDGET, MAX_SHARE
 from point_gn_ros.bank.bank_file import remove_stale_temps
 from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
 from point_gn_ros.bank.live import LiveBank, Snapshot
-from point_gn_ros.bank.refit import LDA_PRIORS, MAX_VOTE_PRIOR
+from point_gn_ros.bank.refit import LDA_PRIORS
 from point_gn_ros.core.augment import AUGMENTS
 from point_gn_ros.errors import DecodeError, PointGNError
 from point_gn_ros.node.enroll_detections import StampPairing, crop_box
@@ -125,13 +125,6 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                                     '(default: built classes keep theirs, each enrolled class '
                                     'gets their mean share).',
                          {'additional_constraints': "one of 'entries', 'balanced', 'typical'"}),
-    'enroll_vote_prior': (0.0, 'Class-size prior exponent beta of the kernel vote for classes '
-                               'created by enrollment (bank/vote_prior.py): their vote is '
-                               'scaled by (mean built-class entries / their entries)^beta; '
-                               '0 = the plain vote (default; train CV picks 0 beside '
-                               'enroll_lda_debias, README issue 12).',
-                          {'floating_point_range': [FloatingPointRange(
-                              from_value=0.0, to_value=MAX_VOTE_PRIOR, step=0.0)]}),
     'enroll_lda_debias': (2.0, 'Share f of the mean-noise correction of a wide LDA (bank/lda.py '
                                'lda_noise_trace) for classes created by enrollment: LDA bias += '
                                'f tr(P Sigma) / (2 n); 0 = none; with enroll_steal_budget > 0, '
@@ -213,7 +206,7 @@ class Enrollment(ManagedEntity):
                       f'{", ".join(LDA_PRIORS)}')
             return TransitionCallbackReturn.FAILURE
         policy = RefitPolicy(gamma=gamma, min_examples=self.values['min_examples_per_class'],
-                             lda_prior=prior, vote_prior=float(self.values['enroll_vote_prior']),
+                             lda_prior=prior,
                              lda_debias=float(self.values['enroll_lda_debias']),
                              lda_steal_budget=float(self.values['enroll_steal_budget']))
         try:

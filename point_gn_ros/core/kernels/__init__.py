@@ -78,7 +78,7 @@ _SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
 # included by the C files: part of the snapshot and the cache key
 _HEADERS = ('pgn_common.h', 'pgn_geom.h', 'pgn_knn.h', 'pgn_lone.h', 'pgn_phases.h')
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
-ABI_VERSION = 2
+ABI_VERSION = 3
 _log = logging.getLogger(__name__)
 
 _lock = threading.Lock()
@@ -282,7 +282,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_head_linear.restype = None
     lib.pgn_head_linear.argtypes = [p, i64, p, i64, p, p]
     lib.pgn_head_finish.restype = ctypes.c_int
-    lib.pgn_head_finish.argtypes = [p, p, i64, i64, p, f64, p, f64, f64, p, p, i64, p, p,
+    lib.pgn_head_finish.argtypes = [p, p, i64, i64, p, f64, p, f64, f64, p, i64, p, p,
                                     f64, f64, p, p, p]
 
 

@@ -9,7 +9,7 @@
 #include "pgn_lone.h"
 #include "pgn_phases.h"
 
-int pgn_abi_version(void) { return 2; }
+int pgn_abi_version(void) { return 3; }
 
 /* Lanes of the stage kernels this build runs: 16 (AVX-512), 8 (AVX2 + FMA), 0 (portable C). */
 int pgn_simd_width(void) {

@@ -165,12 +165,11 @@ static void log_normalize(double *v, int64_t C) {
 
 /* sims (M) with labels (M) in [0, C); counts (C) entries per class in the section;
  * ridge_coef (M, C) float32 or NULL (then M is the whole section, in its row order);
- * vote_bias (C) or NULL; lda_coef (C, lda_dim) or NULL; work: 5 C doubles.
+ * lda_coef (C, lda_dim) or NULL; work: 5 C doubles.
  * -> prob (C) float32, *novelty = max(1 - best cosine, 0). Returns 0, or -1 for M < 1. */
 int pgn_head_finish(const float *sims, const int64_t *labels, int64_t M, int64_t C,
                     const int64_t *counts, double gamma,
                     const float *ridge_coef, double ridge_gamma, double ridge_weight,
-                    const float *vote_bias,
                     const float *lda_in, int64_t lda_dim, const float *lda_coef,
                     const float *lda_bias, double fusion_weight, double temperature,
                     double *work, float *prob, float *novelty) {
@@ -232,8 +231,6 @@ int pgn_head_finish(const float *sims, const int64_t *labels, int64_t M, int64_t
     log_normalize(fused, C);
     if (ridge)
         for (int64_t c = 0; c < C; ++c) fused[c] += ridge_weight * (double)(float)ridge_sum[c];
-    if (vote_bias != NULL)
-        for (int64_t c = 0; c < C; ++c) fused[c] += vote_bias[c];
     if (lda_coef != NULL && fusion_weight != 0.0) {
         pgn_head_linear(lda_in, lda_dim, lda_coef, C, lda_bias, aux);
         log_normalize(aux, C);
