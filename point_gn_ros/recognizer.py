@@ -6,7 +6,6 @@ This is what the ROS node, the CLI and the rosbag tools call; it holds no ROS co
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import replace
 import os
 import time
 from typing import Any, Protocol
@@ -15,7 +14,7 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.classifier import UNKNOWN, Classification, Classifier
+from point_gn_ros.bank.classifier import Classification, Classifier
 from point_gn_ros.core.augment import Augment, yaw_variants
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.sampling import ResampleMethod, prepare
@@ -126,9 +125,9 @@ class Recognizer:
         bank.check_config(self.encoder.cfg)
         self.classifier = Classifier(bank, device, unknown_threshold, search=search,
                                      previous=None if previous is None else previous.classifier,
-                                     object_test=object_test, fit_threshold=fit_threshold)
+                                     object_test=object_test, fit_threshold=fit_threshold,
+                                     volume_threshold=volume_threshold)
         self.metric_size = metric_size
-        self.volume_threshold = volume_threshold
         self.resample = resample
         self.top_k = top_k
 
@@ -188,18 +187,12 @@ class Recognizer:
         if not clouds:
             return self.classifier.classify(torch.zeros(0, self.encoder.cfg.feature_dim),
                                             self.top_k)
-        res = self.classifier.classify(self.encode(clouds), self.top_k, self.sizes(clouds))
-        return self._volume_rule(res, self.volumes(clouds))
+        return self.classifier.classify(self.encode(clouds), self.top_k, self.sizes(clouds),
+                                        self.volumes(clouds))
 
     def volumes(self, clouds: Sequence[np.ndarray]) -> np.ndarray | None:
         """(B,) share of volumetric neighbourhoods (core/surface.py); None without the rule."""
-        return volumetric_shares(clouds) if self.volume_threshold is not None else None
-
-    def _volume_rule(self, res: Classification, volumes: np.ndarray | None) -> Classification:
-        if volumes is None:
-            return res
-        labels = np.where(volumes > self.volume_threshold, UNKNOWN, res.labels)
-        return replace(res, labels=labels, volumetric=volumes.astype(np.float32))
+        return None if self.classifier.volume_threshold is None else volumetric_shares(clouds)
 
     def sizes(self, clouds: Sequence[np.ndarray]) -> np.ndarray | None:
         """(B, SIZE_DIM) metric log sizes (core/size.py); None without metric_size."""
@@ -221,5 +214,4 @@ class Recognizer:
         batch = np.stack([_prepared(c, cfg, self.resample, 0) for c in clouds])
         features = start(torch.from_numpy(batch))
         sizes, volumes = self.sizes(clouds), self.volumes(clouds)
-        return lambda: self._volume_rule(self.classifier.classify(features(), self.top_k, sizes),
-                                         volumes)
+        return lambda: self.classifier.classify(features(), self.top_k, sizes, volumes)

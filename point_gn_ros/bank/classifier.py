@@ -167,7 +167,8 @@ class Classifier:
                  novelty_threshold: float | None = None, search: str = 'auto',
                  index_min_entries: int = INDEX_MIN_ENTRIES,
                  previous: 'Classifier | None' = None, object_test: bool = True,
-                 fit_threshold: float | None = None) -> None:
+                 fit_threshold: float | None = None,
+                 volume_threshold: float | None = None) -> None:
         """Classifier of one bank version (the search is built here, once).
 
         gamma: override the bank's (comparisons only); search: 'auto', 'exact' or
@@ -176,7 +177,8 @@ class Classifier:
         indexes are extended instead of rebuilt where that gives the same (`make_search`);
         object_test: apply the bank's object test to its taught classes (bank/objects.py);
         fit_threshold: a query whose shape-and-size fit (bank/taught.py) is below it is
-        unknown (None: no such rule).
+        unknown (None: no such rule); volume_threshold: a query whose share of volumetric
+        neighbourhoods (core/surface.py) is above it is unknown (None: no such rule).
         """
         self.bank = bank
         self.device = torch.device(device)
@@ -210,6 +212,7 @@ class Classifier:
                 unknown_threshold = float(calib['threshold'])
         self.unknown_threshold = unknown_threshold or None
         self.fit_threshold = fit_threshold
+        self.volume_threshold = volume_threshold
         self._taught: TaughtLayer | None = None
         # The object test's shift of taught classes (bank/objects.py); None: nothing moves.
         self.object_shift = None if bank.objects is None or not object_test \
@@ -324,13 +327,16 @@ class Classifier:
 
     @torch.no_grad()
     def classify(self, features: torch.Tensor, top_k: int = 5,
-                 sizes: np.ndarray | None = None) -> Classification:
+                 sizes: np.ndarray | None = None,
+                 volumes: np.ndarray | None = None) -> Classification:
         """features: (B, D) float32 raw encoder output -> Classification.
 
         sizes: (B, SIZE_DIM) metric log sizes of the queries (core/size.py), or None for
         inputs without metric meaning. The taught-class prototypes and the size terms
         (bank/taught.py) run when the bank has taught classes, sizes are given, or the
         fit threshold is set; otherwise the head's probabilities are the answer.
+        volumes: (B,) shares of volumetric neighbourhoods (core/surface.py) for the volume
+        rule, or None.
         """
         prob, novelty, partial = self._evaluate(features)
         prob, novelty = prob.cpu(), novelty.cpu()
@@ -348,6 +354,8 @@ class Classifier:
             labels[novelty > self.novelty_threshold] = UNKNOWN
         if self.fit_threshold is not None and fit is not None:
             labels[torch.from_numpy(fit < self.fit_threshold)] = UNKNOWN
+        if self.volume_threshold is not None and volumes is not None:
+            labels[torch.from_numpy(np.asarray(volumes) > self.volume_threshold)] = UNKNOWN
         return Classification(labels=labels.numpy().astype(np.int64),
                               scores=top_s[:, 0].numpy().astype(np.float32),
                               topk_ids=top_i.numpy().astype(np.int64),
@@ -356,4 +364,6 @@ class Classifier:
                               novelty=novelty.numpy().astype(np.float32),
                               partial=None if partial is None
                               else partial.cpu().numpy().astype(np.float32),
-                              fit=None if fit is None else fit.astype(np.float32))
+                              fit=None if fit is None else fit.astype(np.float32),
+                              volumetric=None if volumes is None
+                              else np.asarray(volumes, dtype=np.float32))
