@@ -8,7 +8,7 @@ alternation on the same synthetic clouds: thread CPU time, one thread, minimum o
 repeats. It also reports each variant's largest relative feature difference to the first.
 
     python benchmarks/kernel_ab.py --variant before=git:HEAD --variant after=tree \
-        --variant after-nosep=tree:-DPGN_NO_SEP256 --repeats 7
+        --variant after-nosep=tree:-DPGN_NO_SEPARABLE_AVX2 --repeats 7
 
 A variant is NAME=tree[:FLAGS] (the working tree's kernels) or NAME=git:REV[:FLAGS] (the
 kernels of a commit, read with `git show`); FLAGS are extra compiler flags, comma separated.
@@ -39,16 +39,19 @@ _KDIR = 'point_gn_ros/core/kernels'
 
 
 def _snapshot(spec: str) -> dict[str, bytes]:
-    """Kernel sources (*.c, *.h) of the working tree or of a git revision."""
+    """Product kernel sources (*.c, *.h, paths under kernels/; bench/ left out) of the
+    working tree or of a git revision."""
     if spec == 'tree':
-        return {p.name: p.read_bytes() for p in Path(_KDIR).iterdir()
-                if p.suffix in ('.c', '.h')}
+        names = [str(p.relative_to(_KDIR)) for p in Path(_KDIR).rglob('*')
+                 if p.suffix in ('.c', '.h')]
+        return {n: (Path(_KDIR) / n).read_bytes() for n in names
+                if not n.startswith('bench/')}
     rev = spec.removeprefix('git:')
-    names = subprocess.run(['git', 'ls-tree', '--name-only', f'{rev}:{_KDIR}'], check=True,
-                           capture_output=True, text=True).stdout.split()
+    names = subprocess.run(['git', 'ls-tree', '-r', '--name-only', f'{rev}:{_KDIR}'],
+                           check=True, capture_output=True, text=True).stdout.split()
     return {n: subprocess.run(['git', 'show', f'{rev}:{_KDIR}/{n}'], check=True,
                               capture_output=True).stdout
-            for n in names if n.endswith(('.c', '.h'))}
+            for n in names if n.endswith(('.c', '.h')) and not n.startswith('bench/')}
 
 
 def _build(sources: dict[str, bytes], extra: list[str], out_dir: Path) -> Path:
@@ -58,12 +61,15 @@ def _build(sources: dict[str, bytes], extra: list[str], out_dir: Path) -> Path:
         raise SystemExit('no C compiler')
     flags = [*kernels._COMMON, *kernels._arch_flags(), '-DPGN_PROFILE', *extra]
     for name, data in sources.items():
+        (out_dir / name).parent.mkdir(parents=True, exist_ok=True)
         (out_dir / name).write_bytes(data)
+    # a file's flags by its name: revisions before the folders kept the same names flat
+    flags_by_name = {Path(n).name: f for n, f in kernels.SOURCE_FLAGS.items()}
     objs = []
     for name in sorted(sources):
         if not name.endswith('.c'):
             continue
-        per_file = kernels._SOURCES.get(name, ['-ffast-math'])
+        per_file = flags_by_name.get(Path(name).name, ['-ffast-math'])
         obj = out_dir / (name + '.o')
         subprocess.run([cc, *flags, *per_file, '-c', str(out_dir / name), '-o', str(obj)],
                        check=True)

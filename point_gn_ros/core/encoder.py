@@ -192,7 +192,7 @@ class PointGNEncoder:
         lib = kernels.load()
         assert lib is not None
         cfg = self.cfg
-        rc = lib.pgn_encode_lone(xyz.ctypes.data, cfg.num_points, cfg.init_dim, cfg.stages,
+        rc = lib.pgn_encode_with_helper(xyz.ctypes.data, cfg.num_points, cfg.init_dim, cfg.stages,
                                  cfg.k, cfg.sigma, self._centres.ctypes.data, cfg.feature_dim,
                                  out.ctypes.data)
         if rc != 0:

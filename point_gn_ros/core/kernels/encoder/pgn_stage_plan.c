@@ -34,7 +34,7 @@ static int chain_ok(int64_t nc, double q, int B) {
  * used (fx untouched). */
 int pgn_sep_plan(int64_t nc, float q, sep_t *fx, float *b, float *C, float *T) {
     int B = 0;
-#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEPARABLE_AVX512)
     if (pgn_sep_ok(nc, (double)q, 16) && tfold_ok(nc, (double)q, 15)) B = 16;
 #endif
 #if defined(PGN_AVX2)
@@ -128,7 +128,7 @@ int pgn_lanes_plan(int64_t nc, float q, lanes_t *lp, float *b, float *T) {
     return 0;
 }
 
-/* Floats of scratch the neighbour-lanes kernels (pgn_avx512_lanes.c, pgn_avx2_lanes.c) need
+/* Floats of scratch the neighbour-lanes kernels (pgn_avx512_neighbour_lanes.c, pgn_avx2_neighbour_lanes.c) need
  * for K neighbours and D <= 32: the (D + 3, Kc) tables, Kc = K rounded up to 128, two rows
  * of Kc (AVX2: a chunk's P and lane masks), 64 channels' lane partials twice, and 4 rows of
  * 64 per-channel values. */

@@ -1,6 +1,6 @@
 /* Slabs: the points of a stage in buckets along one axis, so that FPS and the kNN look only
  * at the points near a point on that axis where that is exact (pgn_geom.c, pgn_knn.c,
- * pgn_knn16.c). Built without fast-math, like them.
+ * pgn_knn_codes16.c). Built without fast-math, like them.
  */
 #include <math.h>
 #include <stdint.h>

@@ -1,6 +1,6 @@
-/* Shared by the encoder's C files: pgn_stage.c (portable stage kernels), the ISA kernels
+/* Shared by the encoder's C files: pgn_stage_portable.c (portable stage kernels), the ISA kernels
  * (pgn_avx512*.c, pgn_avx2*.c: compiled only where -march=native enables them),
- * pgn_plan.c (a stage's kernel plan), pgn_phases.c (the steps over a range of centres) and
+ * pgn_stage_plan.c (a stage's kernel plan), pgn_steps.c (the steps over a range of centres) and
  * pgn_encode.c (one cloud end to end).
  * Hashed with the sources for the kernel cache key (kernels/__init__.py).
  */
@@ -171,7 +171,7 @@ static inline __m256 exp2_neg_avx2(__m256 t) {
 #endif
 
 #if defined(__AVX2__)
-/* The lanes kernels' reduction (pgn_avx2_lanes.c; pgn_avx512_lanes.c per 8 channels): 8
+/* The lanes kernels' reduction (pgn_avx2_neighbour_lanes.c; pgn_avx512_neighbour_lanes.c per 8 channels): 8
  * channels' lane partials V (8, 8) reduced over the lanes: lane c is channel c's max
  * (MAX) or sum. Rounds: 128-bit halves, pairs, neighbours; the last leaves channel 2 j + h
  * in lane 4 h + j, then one permute. */
@@ -194,8 +194,8 @@ PGN_RED8(pgn_red8_add, _mm256_add_ps)
 #undef PGN_RED8
 #endif
 
-/* Separable Gaussians with neighbours in the lanes (pgn_avx512_lanes.c, pgn_avx2_lanes.c;
- * the plan and the scratch size in pgn_plan.c): nc Gaussians per axis in nblk blocks of B
+/* Separable Gaussians with neighbours in the lanes (pgn_avx512_neighbour_lanes.c, pgn_avx2_neighbour_lanes.c;
+ * the plan and the scratch size in pgn_stage_plan.c): nc Gaussians per axis in nblk blocks of B
  * (the last may be shorter) starting at b[m]; T: (nc,), the T_l of Gaussian j = m B + l. */
 #define PGN_LANES_MAXC 32
 typedef struct {
@@ -214,7 +214,7 @@ typedef struct {
     const float *pts;   /* the stage's points (n, 3): the centres' coordinates */
     float rx;           /* 1 / std of the coordinate offsets */
 } lanes_init_t;
-/* The body of the lanes kernels' init_rows (pgn_avx512_lanes.c, pgn_avx2_lanes.c): the
+/* The body of the lanes kernels' init_rows (pgn_avx512_neighbour_lanes.c, pgn_avx2_neighbour_lanes.c): the
  * initial Gaussians of the three axes of ng groups of L lanes at coordinates w[3 i + a]
  * (clamped to +-W), blockwise U_j = A_m P^l as in the pe chain, the 3 ng chains (at most
  * NVMAX) interleaved; group i's row a n + j (n = lp->nc) at out + L i + (a n + j) stride
@@ -244,40 +244,40 @@ typedef struct {
         }                                                                                \
     } while (0)
 #if defined(PGN_AVX2)
-void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_neighbour_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
                               float r, const lanes_t *lp, const lanes_init_t *ini,
                               float *out, float *scr);
 #endif
 #if defined(__AVX512F__)
-void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_neighbour_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                 float r, const lanes_t *lp, const lanes_init_t *ini,
                                 float *out, float *scr);
 #endif
 
-/* pgn_stage.c */
+/* pgn_stage_portable.c */
 void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K);
 void pgn_stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, const int32_t *nb,
                          int64_t S, int64_t K, const float *vx, float r, const float *cc,
                          const int32_t *ax, float q, float *out, float *pe, int64_t PS,
                          float *mx, float *sm, sep_t *fx);
-/* pgn_plan.c */
+/* pgn_stage_plan.c */
 int pgn_sep_ok(int64_t n, double q, int B);
 int pgn_sep_plan(int64_t nc, float q, sep_t *fx, float *b, float *C, float *T);
 
 /* pgn_avx512.c */
 #if defined(__AVX512F__)
-void pgn_aggregate_d32_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_narrow_avx512(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
                               float r, const float *ccs, const __mmask16 *m1,
                               const __mmask16 *m2, float s, float *out, float *acc);
 void pgn_std_centre_avx512(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,
                            const float *cf, float *a1, float *a2);
 #endif
-/* pgn_avx512_sep.c */
+/* pgn_avx512_separable.c */
 #if defined(__AVX512F__) && defined(__AVX512VL__)
-void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_separable_avx512(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
                               float r, float *out, float *mx, float *sm, float *G, float *Gs,
                               float *rT, float *T2, sep_t *fx);
@@ -285,17 +285,17 @@ void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
 
 #if defined(PGN_AVX2)
 /* pgn_avx2.c */
-void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_narrow_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, const float *ccs, const int32_t *lane_axis, float s,
                             float *out, float *acc);
-void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_separable_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, float *out, float *mx, float *sm, float *G, float *RV,
                             float *G2, int32_t *SRC, float *IT, float *T2, sep_t *fx);
-/* pgn_avx2_d18.c */
-int pgn_d18_ok(int64_t D, float q);
-void pgn_aggregate_d18_avx2(const float *feat, int64_t D, const int64_t *cidx,
+/* pgn_avx2_narrow_derived.c */
+int pgn_narrow_derived_ok(int64_t D, float q);
+void pgn_aggregate_narrow_derived_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, const float *cents, float s, float *out, float *acc);
 void pgn_std_centre_avx2(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,

@@ -1,6 +1,6 @@
 /* Point-GN's separable stages (2-4 of the default encoder) with AVX-512 intrinsics: blocks
  * of 8 (sep_pass) or 16 (sep_group16, sep_centre16) Gaussians of one axis a vector, from
- * pgn_sep_prepare's factors (pgn_stage.c). Only where the compiler targets AVX-512 F and
+ * pgn_sep_prepare's factors (pgn_stage_portable.c). Only where the compiler targets AVX-512 F and
  * VL; elsewhere this file is empty and pgn_encode.c uses the AVX2 or portable kernels.
  * Split from pgn_avx512.c on 2026-12-05. */
 #include "pgn_common.h"
@@ -237,7 +237,7 @@ static void sep_centre16(const sep_t *fx, int64_t D, const float *feat, int64_t 
     }
 }
 
-void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_separable_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                  const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                  float r, float *out, float *mx, float *sm, float *G,
                                  float *Gs, float *rT, float *T2, sep_t *fx) {

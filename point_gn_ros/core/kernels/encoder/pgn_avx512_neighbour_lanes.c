@@ -1,14 +1,14 @@
 /* Stage aggregation with neighbours in the lanes (AVX-512), for 16 < D <= 32: stage 1 of
  * the default encoder (D = 27: 54 pe channels, 18 Gaussians per axis).
  *
- * pgn_aggregate_d32_avx512 puts channels in the lanes and evaluates every Gaussian with its
+ * pgn_aggregate_narrow_avx512 puts channels in the lanes and evaluates every Gaussian with its
  * own exponential: 4 vectors of exp a neighbour. Here the 16 lanes are 16 neighbours of one
  * centre and each axis's channels are walked along its grid of centres b_0 + j h. In a
  * block starting at b_m, pe_l = T_l U_l with U_l = A_m P^l, A_m = exp(q (b_m - w)^2),
  * P = exp(-2 q h w) (w: the neighbour's offset on that axis) and T_l = exp(2 q l h b_m +
  * q l^2 h^2): the separable form of sep_t, the powers taken one step at a time. An axis
  * then costs 2 exponentials per 16 neighbours (one block) instead of one per channel.
- * pgn_lanes_plan (pgn_plan.c) picks the blocks (lanes_range_ok).
+ * pgn_lanes_plan (pgn_stage_plan.c) picks the blocks (lanes_range_ok).
  *
  * The offset half needs the neighbours' feature rows by channel, in a channel-major table
  * per centre. On the initial embedding (lanes_init_t: stage 1 of the encoder) a row is the
@@ -57,7 +57,7 @@ __attribute__((noinline)) static void init_rows(const __m512 *w, int ng, const l
 #undef PGN_ROW_STORE
 }
 
-void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_neighbour_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                 float r, const lanes_t *lp, const lanes_init_t *ini,
                                 float *out, float *scr) {

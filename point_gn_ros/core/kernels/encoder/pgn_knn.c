@@ -1,6 +1,6 @@
 /* Point-GN k nearest neighbours: each centre's k nearest points, ties to the lower index.
  * This file: the search on float distances (any CPU), the guess and the entry points;
- * pgn_knn16.c: the search on 16-bit codes (AVX-512 BW and VBMI2); pgn_slab.c: the slabs.
+ * pgn_knn_codes16.c: the search on 16-bit codes (AVX-512 BW and VBMI2); pgn_slab.c: the slabs.
  *
  * Compiled WITHOUT -ffast-math and with -ffp-contract=off, like pgn_geom.c: every distance
  * is rounded like the oracle's torch ops ((dx*dx + dy*dy) + dz*dz), so the choices are

@@ -26,7 +26,7 @@ void pgn_scan_i8(const int8_t *codes, int64_t n, int64_t r, const int8_t *q, int
             qv[j] = _mm512_cvtepi8_epi16(_mm256_loadu_si256((const void *)(q + 32 * j)));
         for (int64_t i = 0; i < n; ++i) {
             const int8_t *row = codes + i * r;
-            if (i + 16 < n)     /* as pgn_scan4.c: the hardware prefetchers lag after idle time */
+            if (i + 16 < n)     /* as pgn_scan_i4.c: the hardware prefetchers lag after idle time */
                 for (int64_t o = 0; o < r; o += 64) __builtin_prefetch(row + 16 * r + o);
             __m512i acc = _mm512_setzero_si512(), acc2 = acc;
             int64_t j = 0;

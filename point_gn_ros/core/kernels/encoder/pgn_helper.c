@@ -23,7 +23,7 @@
 #include <xmmintrin.h>  /* _mm_getcsr / _mm_setcsr */
 #endif
 
-#include "pgn_lone.h"
+#include "pgn_helper.h"
 
 /* The helper yields its CPU once it has polled this long without a step: the serial steps
  * between two shared ones (an FPS, the pooling) take tens of us, and a runnable thread of
@@ -156,7 +156,7 @@ static int started(void) {
                 rt.thread = th;
                 rt.pid = getpid();
 #ifdef __linux__
-                pthread_setname_np(th, "pgn_lone");   /* top -H, /proc/PID/task/.../comm */
+                pthread_setname_np(th, "pgn_enc_helper");   /* top -H, /proc/PID/task/.../comm */
 #endif
             }
             pthread_attr_destroy(&attr);
