@@ -39,8 +39,10 @@ _KDIR = 'point_gn_ros/core/kernels'
 
 
 def _snapshot(spec: str) -> dict[str, bytes]:
-    """Product kernel sources (*.c, *.h, paths under kernels/; bench/ left out) of the
-    working tree or of a git revision."""
+    """Product kernel sources (*.c, *.h; bench/ left out) of the tree or of a git revision.
+
+    Keys: paths under kernels/ (flat names in revisions before the subsystem folders).
+    """
     if spec == 'tree':
         names = [str(p.relative_to(_KDIR)) for p in Path(_KDIR).rglob('*')
                  if p.suffix in ('.c', '.h')]

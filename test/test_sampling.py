@@ -125,8 +125,8 @@ def test_fps_over_a_slab_ties_like_the_oracle(build: str, tmp_path: Path) -> Non
 @pytest.mark.parametrize('build', sorted(KERNEL_BUILDS))
 def test_every_simd_build_of_knn_ties_like_the_oracle(build: str, tmp_path: Path) -> None:
     # pgn_knn.c counts and splits on floats (portable, AVX2, AVX-512), pgn_knn_codes16.c on
-    # 16-bit codes (AVX-512 BW + VBMI2, 64 <= n): each build that this CPU runs, against the oracle's
-    # stable sort, with exact ties, tails past the vector blocks, a middle past 32 keys
+    # 16-bit codes (AVX-512 BW + VBMI2, 64 <= n): each build that this CPU runs, against the
+    # oracle's stable sort, with exact ties, tails past the vector blocks, a middle past 32 keys
     # (duplicates) and centres whose k-th distances differ from their predecessor's guess
     lib = kernel_build(('encoder/pgn_knn.c', 'encoder/pgn_knn_codes16.c', 'encoder/pgn_slab.c'),
                        build, tmp_path, ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))

@@ -18,7 +18,8 @@ if TYPE_CHECKING:
 __all__ = ['PROFILE_SLOTS', 'profile_rows', 'search_roofline_rows']
 
 
-# Instrumented kernel slots (pgn_prof in pgn_stage_portable.c) -> phase names of the roofline table.
+# Instrumented kernel slots (pgn_prof, encoder/pgn_encode.c) -> phase names of the roofline
+# table.
 PROFILE_SLOTS = {8: 'initial embedding', 0: 'FPS', 1: 'kNN', 7: 'feature std',
                  3: 'aggregation stage 1', 4: 'aggregation stage 2', 5: 'aggregation stage 3',
                  6: 'aggregation stage 4', 9: 'pooling', 10: 'offsets and their std',

@@ -10,7 +10,7 @@ from collections.abc import Mapping
 # Bump whenever the encoder's output changes for a given configuration, so that
 # banks built by an older encoder are refused instead of silently mis-matched.
 ENCODER_VERSION = 1
-# More scales multiply the encoder's cost; two were measured to help (benchmarks/log).
+# More scales multiply the encoder's cost (see benchmarks/RESULTS.md for what two give).
 MAX_EXTRA_SIGMAS = 3
 # How clouds with fewer points than num_points are filled up (core/sampling.py).
 UPSAMPLE_METHODS = ('repeat', 'midpoint')
@@ -33,7 +33,7 @@ class EncoderConfig:
     extra_sigmas: tuple[float, ...] = ()
     # How a cloud of fewer than num_points points is filled up (core/sampling.py): 'repeat'
     # (banks from before this knob) or 'midpoint' (new points between neighbours; +2-3
-    # points on single-view scans by grouped CV: benchmarks/log). Complete objects of
+    # points on single-view scans by grouped CV: see benchmarks/RESULTS.md). Complete objects of
     # num_points points or more are unaffected.
     upsample: str = 'repeat'
 

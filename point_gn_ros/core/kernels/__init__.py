@@ -187,7 +187,8 @@ def library_path(variant: str = 'native') -> Path | None:
 def _find_or_build(stem: str, files: dict[str, tuple[str, ...]]) -> tuple[Path, str]:
     """Best cached variant of library `stem`, else build one: (path, variant).
 
-    Raises the last build error."""
+    Raises the last build error.
+    """
     cc = _compiler()
     if cc is None:
         raise OSError('no C compiler (gcc/cc) found')
@@ -296,8 +297,7 @@ def _declare(lib: ctypes.CDLL) -> None:
 
 
 def load() -> ctypes.CDLL | None:
-    """The product kernels (encoder/, bank/; built on first call), or None when no C
-    compiler works.
+    """The product kernels (encoder/, bank/; built on first call), or None without them.
 
     `last_error()` says why it is None. Thread-safe; builds at most once per process.
     """
@@ -382,7 +382,7 @@ def dispatch_table() -> list[KernelEntry]:
             if missing:
                 reason = f'this CPU lacks {" ".join(missing)}'
             elif isa.value.decode() != built:
-                reason = (f'this build targets {built}: -march=native builds one ISA\'s '
+                reason = (f"this build targets {built}: -march=native builds one ISA's "
                           'stage kernels, the widest the CPU has')
             else:
                 reason = f'compiled out of this {built} build (a PGN_NO_* flag)'
@@ -393,7 +393,8 @@ def dispatch_table() -> list[KernelEntry]:
 def stage_variants(init_dim: int, stages: int, sigma: float) -> list[str]:
     """The aggregation variant each encoder stage runs in this build: (stages,) names.
 
-    Fixed by the stage's width and sigma, whatever the cloud (encoder/pgn_encode.c)."""
+    Fixed by the stage's width and sigma, whatever the cloud (encoder/pgn_encode.c).
+    """
     lib = _require()
     codes = np.empty(stages, np.int32)
     if lib.pgn_stage_variants(init_dim, stages, sigma, codes.ctypes.data):

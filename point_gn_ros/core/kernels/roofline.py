@@ -1,7 +1,7 @@
 """Roofline figures for the encoder's phases: peak rates of this core, work per phase.
 
-`measure_peaks()` times micro-benchmarks (bench/pgn_peak.c, `kernels.load_bench()`) with the calling thread's CPU
-clock, so another process on the core does not lower the figure (it only takes wall
+`measure_peaks()` times micro-benchmarks (bench/pgn_peak.c, `kernels.load_bench()`)
+with the calling thread's CPU clock, so another process on the core does not lower the figure (it only takes wall
 time). `phase_work()` counts, for one cloud of a configuration, the minimal work of
 each phase: fp32 lane operations, exps and bytes read. floor = max(ops / peak_ops +
 exps / peak_exp, bytes / bandwidth); the phase's measured CPU time over its floor says

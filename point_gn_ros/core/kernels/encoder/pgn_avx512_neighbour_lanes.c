@@ -16,15 +16,15 @@
  * by the same chain (init_rows); elsewhere the rows are read and transposed. Each
  * channel's max and sum are kept per lane and
  * reduced over the lanes at the end of the centre. Features stay within a few 1e-6 of the
- * oracle (benchmarks/log); a result depends on its centre only, so batches, threads and a
- * lone cloud's chunks stay bit-identical.
+ * oracle; a result depends on its centre only, so batches, threads and the helper's
+ * chunks stay bit-identical.
  */
 #include "pgn_common.h"
 
 #if defined(__AVX512F__)
 /* 16 channels' lane partials V (16, 16) reduced over the lanes: lane c of the result is
  * channel c's max (MAX) or sum. In 256-bit operations (half the cost of 512-bit ones on
- * Zen 4; 0.010 ms a cloud less than a 512-bit halving tree): each channel's two halves
+ * Zen 4): each channel's two halves
  * combined, then pgn_red8 per 8 channels, the two results joined. */
 #define PGN_RED16(NAME, OP, RED8)                                                        \
     static inline __m512 NAME(const float *V) {                                         \

@@ -1,5 +1,5 @@
-/* Shared by the encoder's C files: pgn_stage_portable.c (portable stage kernels), the ISA kernels
- * (pgn_avx512*.c, pgn_avx2*.c: compiled only where -march=native enables them),
+/* Shared by the encoder's C files: pgn_stage_portable.c (portable stage kernels), the ISA
+ * kernels (pgn_avx512*.c, pgn_avx2*.c: empty unless the build targets their ISA),
  * pgn_stage_plan.c (a stage's kernel plan), pgn_steps.c (the steps over a range of centres) and
  * pgn_encode.c (one cloud end to end).
  * Hashed with the sources for the kernel cache key (kernels/__init__.py).
@@ -22,7 +22,7 @@
 #define PAD 16
 /* Separable Gaussians pay off from this many centres per axis: stage 2 on where the SIMD
  * builds' stage 1 runs in neighbour lanes; from 4 in the portable build, whose stage 1
- * would otherwise take an exponential a channel (14.6 -> 10.5 ms a cloud, benchmarks/log). */
+ * would otherwise take an exponential a channel. */
 #ifndef SEP_MIN_N
 #if defined(__AVX512F__) || defined(PGN_AVX2)
 #define SEP_MIN_N 36
@@ -42,8 +42,7 @@ static inline float gelu(float x) { return 0.5f * x * (1.0f + erff(x * 0.7071067
  * t = u - the interval's middle; from u = 3.919206, where erf rounds to 1 in float, exactly
  * 1, so that gelu is exactly 0 below about -5.5 (0.99999994 there would leave x 3e-8).
  * Fitted here (least squares, reweighted towards equal ripple) in double: 6e-9 off erf, 6e-8
- * (an ulp near 1) as evaluated in float. libmvec's erff took 0.086 ms a cloud (benchmarks/log).
- * Elsewhere libmvec's erff. */
+ * (an ulp near 1) as evaluated in float. Elsewhere libmvec's erff. */
 static inline void gelu_rows(float *p, int64_t n) {
     float *q = (float *)__builtin_assume_aligned(p, 64);
 #if defined(__AVX512F__)
@@ -127,8 +126,7 @@ typedef struct {
 } sep_t;
 
 /* 2^f on [-1/2, 1/2]: degree-5 polynomial with p(0) = 1 exactly, minimax for the relative
- * error (9.1e-8 in exact arithmetic; the degree-6 Taylor form used before had 1.2e-7 and
- * one FMA more). p(0) = 1 keeps Gaussians of exact-integer exponent unbiased. */
+ * error (9.1e-8 in exact arithmetic). p(0) = 1 keeps Gaussians of exact-integer exponent unbiased. */
 #define PGN_EXP2_C0 1.0f
 #define PGN_EXP2_C1 0.6931469776023396f
 #define PGN_EXP2_C2 0.24022242081246917f

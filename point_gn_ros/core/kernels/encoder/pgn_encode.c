@@ -2,9 +2,9 @@
  * holds the stage loop (work space, FPS, the steps' set-up and kernel choice, pooling) and
  * the entry points; the steps over a range of centres are in pgn_steps.c.
  *
- * Compiled with -O3 -march=native -ffast-math. Results are a pure function of one cloud,
- * whatever the batch or thread, so batches are invariant; a lone cloud may share its
- * stages with a helper thread (pgn_encode_with_helper), bit-identically.
+ * Results are a pure function of one cloud, whatever the batch or thread, so batches are
+ * invariant; a one-cloud batch may share its stages with the helper thread
+ * (pgn_encode_with_helper, pgn_helper.c), bit-identically.
  */
 #include "pgn_helper.h"
 #include "pgn_steps.h"
@@ -67,7 +67,7 @@ static float inv_std(const float *part, int64_t S, double count) {
 #endif
 
 /* 64-byte aligned, not zeroed: for the buffers every row of which is written before it is
- * read (the offsets, the kNN rows: 0.02 ms a cloud of memset saved) */
+ * read (the offsets, the kNN rows) */
 static void *xalloc_raw(size_t bytes) {
     const size_t sz = (bytes + 63) / 64 * 64;
     return aligned_alloc(64, sz ? sz : 64);
@@ -134,7 +134,7 @@ int pgn_stage_variants(int64_t init_dim, int64_t stages, float sigma, int32_t *o
 
 /* Encode one cloud. xyz: (num_points, 3); cents: concatenated Gaussian centre
  * tables (init block of init_dim/3, then 2*D_i/3 per stage); out: (feature_dim,).
- * par: the helper thread's runtime for a lone cloud, or NULL.
+ * par: the helper thread's runtime (pgn_helper.c), or NULL.
  * Returns 0, or -1 when out of memory. */
 static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cents, float *out,
                       pgn_par *par) {
@@ -274,7 +274,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
 #endif
         /* each chunk of centres: their kNN rows, then their offset rows and float sums of
          * v and v^2 and of the feature offsets e and e^2 (added below in double in centre
-         * order), in one step that a lone cloud shares with the helper; the aggregation's
+         * order), in one step that the helper may share; the aggregation's
          * chunks scale their own offset rows by 1 / std */
         TIC(3);
         /* 16 chunks on two threads: a claimed chunk is short, so the caller never waits

@@ -1,15 +1,15 @@
-/* A lone cloud's shared steps on the caller plus one helper thread per process.
+/* The helper thread: a one-cloud batch's steps shared between the caller and one helper
+ * thread per process (pgn_encode_with_helper).
  *
- * The helper is started at the first lone cloud and kept: a thread started per cloud (as
- * before 2026-12-03) began running ~3 ms after its creation once the machine had idled,
- * queued on its busy creator's CPU while the other CPU slept. Between clouds it sleeps on a
+ * The helper is started at the first such cloud and kept, so no cloud waits for a thread's
+ * creation and first scheduling. Between clouds it sleeps on a
  * condition variable; each cloud first moves it off the caller's CPU (keep_away), and while
  * it serves a cloud it polls for the next step instead of sleeping between steps.
  *
  * One caller at a time has the helper (`busy`); a second caller meanwhile runs its cloud on
- * its own thread. The per-cloud state is therefore one static struct. Compiled without
- * fast-math: nothing here computes, but the helper runs each chunk with the caller's SSE
- * control word (rounding, flush-to-zero), so a chunk rounds the same on either thread.
+ * its own thread. The per-cloud state is therefore one static struct. Nothing here
+ * computes; the helper runs each chunk with the caller's SSE control word (rounding,
+ * flush-to-zero), so a chunk rounds the same on either thread.
  */
 #define _GNU_SOURCE
 #include <pthread.h>

@@ -1,4 +1,4 @@
-/* A lone cloud's shared steps on the caller plus the process's one helper thread
+/* A one-cloud batch's steps shared by the caller and the process's one helper thread
  * (pgn_helper.c). Each step is cut into chunks claimed from an atomic counter; a chunk's
  * result must depend on that chunk only, so that the split never changes a bit. */
 #ifndef PGN_HELPER_H

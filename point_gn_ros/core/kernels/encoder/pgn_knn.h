@@ -1,6 +1,6 @@
 /* Shared by the kNN's two files (pgn_knn.c: float distances and the entry points;
  * pgn_knn_codes16.c: 16-bit codes): keys, the middle of a bracket, the next threshold.
- * Both are compiled WITHOUT -ffast-math and with -ffp-contract=off (kernels/__init__.py).
+ * Both are built exact (no fast-math, no contraction: kernels/__init__.py SOURCE_FLAGS).
  */
 #ifndef PGN_KNN_H
 #define PGN_KNN_H

@@ -1,8 +1,6 @@
 /* A stage's kernel plan, fixed by its grid of Gaussian centres and q alone: whether the
  * separable form (sep_t) is safe and with which blocks (pgn_sep_plan, from pgn_encode.c),
  * and the neighbour-lanes kernels' blocks and per-channel factors (lanes_t).
- *
- * Compiled with -O3 -march=native -ffast-math, like pgn_encode.c.
  */
 #include "pgn_common.h"
 

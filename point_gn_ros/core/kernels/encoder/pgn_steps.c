@@ -1,9 +1,7 @@
 /* The encoder's steps over a range of a stage's centres: kNN rows, coordinate offsets, the
  * feature-offset std's partials and the aggregation (the ISA kernel chosen by pgn_encode.c).
- * Every centre's result depends on that centre only, so the chunks of a lone cloud give the
- * same bits on either thread.
- *
- * Compiled with -O3 -march=native -ffast-math, like pgn_encode.c.
+ * Every centre's result depends on that centre only, so the chunks of a cloud give the
+ * same bits on either thread (pgn_helper.c).
  */
 #include "pgn_steps.h"
 
@@ -80,7 +78,7 @@ static void offsets_centres(const float *xyz, const float *cx, const float *cy,
             /* 4 floats a neighbour in and out, the 4th (the next point's x; xyz has 4
              * floats of slack) overwritten by the next store and kept out of the sums; the
              * last neighbour by scalars: its 4th float would land in the next centre's
-             * row, which the other thread of a lone cloud may have written already */
+             * row, which the helper thread may have written already */
             const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
             const __m128 m3 = _mm_castsi128_ps(_mm_setr_epi32(-1, -1, -1, 0));
             __m128 s1a = _mm_setzero_ps(), s1b = s1a, s2a = s1a, s2b = s1a;

@@ -1,7 +1,7 @@
 /* The encoder's steps over a range of a stage's centres (pgn_steps.c): kNN, coordinate
  * offsets, the feature-offset std's partials and the aggregation, as one job type that
- * pgn_encode.c fills and runs whole, or, for a lone cloud, cut into chunks shared with the
- * helper thread (pgn_helper.c).
+ * pgn_encode.c fills and runs whole, or cut into chunks shared with the helper thread
+ * (pgn_helper.c).
  */
 #ifndef PGN_STEPS_H
 #define PGN_STEPS_H
@@ -26,7 +26,7 @@ static inline void pgn_prof_split(int slot, double t0) {
 #endif
 
 
-/* A lone cloud on two threads: the caller and one helper share each stage's
+/* A cloud on two threads: the caller and one helper share each stage's
  * aggregation by chunks of centres, claimed from an atomic counter. Every centre's
  * result depends on that centre only, so the split never changes a bit. The caller
  * works through the chunks itself and waits only for chunks the helper has claimed:
@@ -108,7 +108,7 @@ typedef struct agg_job {
 } agg_job;
 
 /* Chunk `chunk` (of job->nchunks) of an agg_job on thread tid: centres
- * [S chunk / nchunks, S (chunk + 1) / nchunks). The lone runtime's chunk function. */
+ * [S chunk / nchunks, S (chunk + 1) / nchunks). The helper runtime's chunk function. */
 void pgn_phase_chunk(void *job, int tid, int64_t chunk);
 
 /* This build's kernel for a variant: its ISA's entry, else the portable one (direct and
