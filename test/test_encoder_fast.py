@@ -285,8 +285,8 @@ def test_kernel_gelu_matches_erf_gelu() -> None:
 def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.ndarray,
                                       naive_real: np.ndarray) -> None:
     # The AVX2 + FMA kernels (pgn_avx2.c, pgn_avx2_narrow_derived.c: stage 1, separable
-    # stages, feature std; AVX2 FPS and kNN in pgn_geom.c) run only on CPUs with AVX2 and without AVX-512;
-    # there the other oracle tests of this file exercise them too.
+    # stages, feature std; AVX2 FPS and kNN in pgn_geom.c) run only on CPUs with AVX2 and
+    # without AVX-512; there the other oracle tests of this file exercise them too.
     _kernels_or_skip()
     if kernels.simd_width() != 8:
         pytest.skip(f'AVX2 path not built here (simd width {kernels.simd_width()}: '

@@ -1,11 +1,11 @@
 """Roofline figures for the encoder's phases: peak rates of this core, work per phase.
 
 `measure_peaks()` times micro-benchmarks (bench/pgn_peak.c, `kernels.load_bench()`)
-with the calling thread's CPU clock, so another process on the core does not lower the figure (it only takes wall
-time). `phase_work()` counts, for one cloud of a configuration, the minimal work of
-each phase: fp32 lane operations, exps and bytes read. floor = max(ops / peak_ops +
-exps / peak_exp, bytes / bandwidth); the phase's measured CPU time over its floor says
-how far the code is from this core's limit.
+with the calling thread's CPU clock, so another process on the core does not lower the
+figure (it only takes wall time). `phase_work()` counts, for one cloud of a
+configuration, the minimal work of each phase: fp32 lane operations, exps and bytes read.
+floor = max(ops / peak_ops + exps / peak_exp, bytes / bandwidth); the phase's measured CPU
+time over its floor says how far the code is from this core's limit.
 
 The counts are of the computation, not of our implementation (e.g. a distance is 8
 operations, an aggregated element 5), with exps counted for an axis's Gaussians as one
