@@ -4,7 +4,7 @@
 usage: benchmarks/scan4_ab.py [--before REV] [--rows 78744] [--codes 288] [--batch 8]
        [--repeats 15]
 
-Compiles core/kernels/pgn_scan_i4.c of git revision REV (default HEAD) and of the working
+Compiles core/kernels/bank/pgn_scan_i4.c of git revision REV (default HEAD) and of the working
 tree as the package does (-march=native, fast-math), then alternates them on the same
 random packed codes and queries: thread CPU a query for one query and for a batch (the
 best of --repeats), and checks that both give the same integers. The scan section of the

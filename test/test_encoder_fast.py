@@ -341,7 +341,7 @@ def test_the_lone_cloud_helper_is_kept_off_its_callers_cpu(real_clouds: np.ndarr
         for task in Path('/proc/self/task').iterdir():
             if (task / 'comm').read_text().strip() == 'pgn_enc_helper':
                 return os.sched_getaffinity(int(task.name))
-        raise AssertionError('no pgn_lone thread')
+        raise AssertionError('no pgn_enc_helper thread')
 
     seen = {}
 

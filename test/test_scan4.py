@@ -1,4 +1,4 @@
-"""The coarse pass over packed 4-bit codes (core/kernels/pgn_scan_i4.c, bank/index_basis.py).
+"""The coarse pass over packed 4-bit codes (core/kernels/bank/pgn_scan_i4.c, index_basis.py).
 
 The kernel's integers must equal the plain product of the unpacked codes with the query in
 every build: the one -march=native picks here, and the AVX2, AVX-512 without VNNI and
