@@ -1,5 +1,5 @@
-/* Stage 1 (16 < D <= 32) with neighbours in the lanes, AVX2 + FMA: pgn_avx512_neighbour_lanes.c with
- * 8-float lanes, for CPUs without AVX-512 (PGN_AVX2). An axis's Gaussians are running
+/* Stage 1 (16 < D <= 32) with neighbours in the lanes, AVX2 + FMA:
+ * pgn_avx512_neighbour_lanes.c with 8-float lanes, for CPUs without AVX-512 (PGN_AVX2). An axis's Gaussians are running
  * products U_{l+1} = U_l P from U_0 = A (2 exponentials per axis and 8 neighbours, one
  * block at the default sigma), T folded out of the products and back in on the results;
  * the offset half's rows computed from the points on the initial embedding (init_rows8),

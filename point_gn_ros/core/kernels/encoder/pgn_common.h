@@ -192,8 +192,8 @@ PGN_RED8(pgn_red8_add, _mm256_add_ps)
 #undef PGN_RED8
 #endif
 
-/* Separable Gaussians with neighbours in the lanes (pgn_avx512_neighbour_lanes.c, pgn_avx2_neighbour_lanes.c;
- * the plan and the scratch size in pgn_stage_plan.c): nc Gaussians per axis in nblk blocks of B
+/* Separable Gaussians with neighbours in the lanes (pgn_avx512_neighbour_lanes.c,
+ * pgn_avx2_neighbour_lanes.c; the plan and the scratch size in pgn_stage_plan.c): nc Gaussians per axis in nblk blocks of B
  * (the last may be shorter) starting at b[m]; T: (nc,), the T_l of Gaussian j = m B + l. */
 #define PGN_LANES_MAXC 32
 typedef struct {
@@ -212,8 +212,8 @@ typedef struct {
     const float *pts;   /* the stage's points (n, 3): the centres' coordinates */
     float rx;           /* 1 / std of the coordinate offsets */
 } lanes_init_t;
-/* The body of the lanes kernels' init_rows (pgn_avx512_neighbour_lanes.c, pgn_avx2_neighbour_lanes.c): the
- * initial Gaussians of the three axes of ng groups of L lanes at coordinates w[3 i + a]
+/* The body of the lanes kernels' init_rows (pgn_avx512_neighbour_lanes.c,
+ * pgn_avx2_neighbour_lanes.c): the initial Gaussians of the three axes of ng groups of L lanes at coordinates w[3 i + a]
  * (clamped to +-W), blockwise U_j = A_m P^l as in the pe chain, the 3 ng chains (at most
  * NVMAX) interleaved; group i's row a n + j (n = lp->nc) at out + L i + (a n + j) stride
  * gets U_j - csub[a n + j] in the lanes of vm[i], else 0, by STORE(p, vm, U, c). V, EXP2,

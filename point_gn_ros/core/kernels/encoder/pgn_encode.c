@@ -320,7 +320,6 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         job.pe[0] = pe; job.mx[0] = mx; job.sm[0] = sm;
         job.pe[1] = pe2; job.mx[1] = vec2; job.sm[1] = vec2 ? vec2 + VS : NULL;
         if (fx) {
-            job.use_fx = 1;
             job.fx[0] = *fx;
             job.fx[1] = *fx;
             job.fx[1].A = sepA2;
@@ -455,8 +454,9 @@ int pgn_encode(const float *xyz, int64_t count, int64_t num_points, int64_t init
  * shares the kNN, std and aggregation steps; bit-identical to pgn_encode. Runs on one
  * thread when another caller has the helper or no helper can start. Returns 0, or -1 when
  * out of memory. */
-int pgn_encode_with_helper(const float *xyz, int64_t num_points, int64_t init_dim, int64_t stages,
-                    int64_t k, float sigma, const float *cents, int64_t feature_dim, float *out) {
+int pgn_encode_with_helper(const float *xyz, int64_t num_points, int64_t init_dim,
+                           int64_t stages, int64_t k, float sigma, const float *cents,
+                           int64_t feature_dim, float *out) {
     (void)feature_dim;
     pgn_cfg cfg = {num_points, init_dim, stages, k, sigma};
     pgn_par *par = pgn_par_begin();

@@ -126,8 +126,8 @@ int pgn_lanes_plan(int64_t nc, float q, lanes_t *lp, float *b, float *T) {
     return 0;
 }
 
-/* Floats of scratch the neighbour-lanes kernels (pgn_avx512_neighbour_lanes.c, pgn_avx2_neighbour_lanes.c) need
- * for K neighbours and D <= 32: the (D + 3, Kc) tables, Kc = K rounded up to 128, two rows
+/* Floats of scratch the neighbour-lanes kernels (pgn_avx512_neighbour_lanes.c,
+ * pgn_avx2_neighbour_lanes.c) need for K neighbours and D <= 32: the (D + 3, Kc) tables, Kc = K rounded up to 128, two rows
  * of Kc (AVX2: a chunk's P and lane masks), 64 channels' lane partials twice, and 4 rows of
  * 64 per-channel values. */
 int64_t pgn_lanes_scratch(int64_t K) {

@@ -26,11 +26,6 @@ static inline void pgn_prof_split(int slot, double t0) {
 #endif
 
 
-/* A cloud on two threads: the caller and one helper share each stage's
- * aggregation by chunks of centres, claimed from an atomic counter. Every centre's
- * result depends on that centre only, so the split never changes a bit. The caller
- * works through the chunks itself and waits only for chunks the helper has claimed:
- * a helper that is not scheduled in time costs nothing but its wake-up. */
 struct agg_job;
 /* A stage's aggregation over centres [c0, c1) of job j on thread tid (0 caller, 1 helper):
  * rows of pooled values before gelu, zero padded to D2p. */
@@ -47,6 +42,11 @@ typedef enum {
     PGN_NVARIANTS
 } pgn_variant;
 
+/* A cloud on two threads: the caller and one helper share each stage's
+ * aggregation by chunks of centres, claimed from an atomic counter. Every centre's
+ * result depends on that centre only, so the split never changes a bit. The caller
+ * works through the chunks itself and waits only for chunks the helper has claimed:
+ * a helper that is not scheduled in time costs nothing but its wake-up. */
 typedef struct agg_job {
     /* kNN job (knn = 1): the stage's points (px, py, pz: n each) and centres (qx, qy, qz),
      * each thread with its own distance / key scratch and a private last row (below);
@@ -87,7 +87,6 @@ typedef struct agg_job {
     float r, q;
     float *out;
     sep_t fx[2];          /* per thread: its own A / E scratch */
-    int use_fx;
     float *pe[2], *mx[2], *sm[2];
     const lanes_t *lanes;  /* stage 1 with neighbours in the lanes (SIMD builds), else NULL */
     float *lscr[2];        /* its scratch, per thread */
