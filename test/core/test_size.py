@@ -13,8 +13,9 @@ from point_gn_ros.bank.taught import (DEFAULT_FIT_THRESHOLD, KEY, TaughtLayer, f
                                       plausible_scale, size_prior)
 from point_gn_ros.core.size import SIZE_DIM, size_descriptor
 
-TABLETOP = (Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'restaurant_kinectsim'
-            / 'all')
+from conftest import SHARED
+
+TABLETOP = SHARED / 'datasets' / 'restaurant_kinectsim' / 'all'
 
 
 def _box(rng: np.random.Generator, dims: tuple[float, float, float], n: int = 3000) -> np.ndarray:
