@@ -59,7 +59,7 @@ def outside(clf: Classifier, feats: torch.Tensor, sizes: np.ndarray, radius: flo
     clf._taught = replace(layer, region=region)
     res = clf.classify(feats, top_k=1, sizes=sizes)
     clf._taught = layer
-    return np.asarray(res.labels < 0)
+    return np.asarray(res.size_misfit > 1.0)
 
 
 def teach(base: BankFile, feats: torch.Tensor, sizes: np.ndarray, y: np.ndarray,
@@ -97,9 +97,10 @@ def main() -> None:
     sizes = size_descriptors([ds[i][0] for i in range(len(ds))])
     y, names = np.asarray(ds.labels), list(ds.class_names)
     tab = {cell: {'unseen rejected': [], 'taught rejected': []} for cell in cells}
+    held_out = np.random.default_rng(0).permutation(len(names))
     for fold in range(args.folds):
         rng = np.random.default_rng(fold)
-        held = int(rng.integers(len(names)))
+        held = int(held_out[fold % len(names)])
         classes = [c for c in range(len(names)) if c != held]
         support = np.concatenate([rng.permutation(np.flatnonzero(y == c))[:5] for c in classes])
         clf = Classifier(teach(base, feats, sizes, y, names, classes, support).bank)

@@ -245,8 +245,9 @@ class TaughtLayer:
               ) -> tuple[torch.Tensor, np.ndarray, np.ndarray | None]:
         """Prob (B, C) rows summing to 1, z (B, d) unit rows, sizes (B, SIZE_DIM) or None.
 
-        -> moved probabilities (B, C) float32, fit (B,) float64, outside (B,) bool: the
-        answer's size outside its class's size region (None without sizes; module docstring).
+        -> moved probabilities (B, C) float32, fit (B,) float64, misfit (B,) float64: the
+        answer's size distance over its class's region (> 1: outside; None without sizes;
+        module docstring).
         """
         logp = prob.double().clamp_min(1e-300).log().numpy()
         zq = z.double().numpy()
@@ -267,11 +268,11 @@ class TaughtLayer:
             built = np.setdiff1d(np.arange(logp.shape[1]), self.taught)
             logp[:, built] += self.w_size * plaus[:, built]
         out = torch.softmax(torch.from_numpy(logp), dim=1).float()
-        outside = None
+        misfit = None
         if plaus is not None:
             top = out.argmax(1).numpy()
-            outside = -2.0 * plaus[np.arange(len(top)), top] > self.region[top]
-        return out, self.fit(zq, plaus), outside
+            misfit = -2.0 * plaus[np.arange(len(top)), top] / self.region[top]
+        return out, self.fit(zq, plaus), misfit
 
     def fit(self, zq: np.ndarray, plaus: np.ndarray | None) -> np.ndarray:
         """(B, d) unit rows, plausibility (B, C) or None -> (B,) best shape-and-size fit."""
