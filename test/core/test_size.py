@@ -99,8 +99,11 @@ def test_an_answer_outside_its_classs_size_region_is_flagged_and_the_region_wide
     layer = _layer(json.loads(json.dumps(meta)), names)
     carton_id, bin_id = 2, 3
     assert layer.region[0] == REGION_CHI2                 # built: the chi-square radius
-    assert layer.region[carton_id] == REGION_CHI2         # its examples agree with the prior
-    assert layer.region[bin_id] > 1.5 * REGION_CHI2       # widened by its own examples
+    assert layer.region[bin_id] > 1.5 * REGION_CHI2       # widened by the bin's examples,
+    assert layer.region[carton_id] == layer.region[bin_id]   # pooled over taught classes
+    alone = _layer(json.loads(json.dumps(add_taught({}, 'carton', torch.nn.functional.normalize(
+        torch.eye(4)[[2] * 5], dim=1), carton))), names)
+    assert alone.region[carton_id] == REGION_CHI2         # its examples agree with the prior
     prob = torch.tensor([[0.05, 0.05, 0.85, 0.05]])
     z = torch.nn.functional.normalize(torch.eye(4)[[2]], dim=1)
     _, _, inside = layer.apply(prob, z, carton.mean(0)[None])
