@@ -176,8 +176,9 @@ class Classifier:
         previous: the classifier of the version this one follows (an enrollment): its
         indexes are extended instead of rebuilt where that gives the same (`make_search`);
         object_test: apply the bank's object test to its taught classes (bank/objects.py);
-        fit_threshold: a query whose shape-and-size fit (bank/taught.py) is below it is
-        unknown (None: no such rule); volume_threshold: a query whose share of volumetric
+        fit_threshold: a query whose shape-and-size fit (bank/taught.py) is below it, or
+        whose size lies outside its answer's size region, is unknown (None: no such rule);
+        volume_threshold: a query whose share of volumetric
         neighbourhoods (core/surface.py) is above it is unknown (None: no such rule).
         """
         self.bank = bank
@@ -340,11 +341,11 @@ class Classifier:
         """
         prob, novelty, partial = self._evaluate(features)
         prob, novelty = prob.cpu(), novelty.cpu()
-        fit = None
+        fit = outside = None
         if len(features) and (sizes is not None or self.fit_threshold is not None
                               or self.bank.meta.get('taught')):
             z = self.transform(features.to(self.device)).cpu()
-            prob, fit = self.taught.apply(prob, z, sizes)
+            prob, fit, outside = self.taught.apply(prob, z, sizes)
         k = max(1, min(top_k, prob.shape[1]))
         top_s, top_i = prob.topk(k, dim=1)
         labels = top_i[:, 0].clone()
@@ -354,6 +355,8 @@ class Classifier:
             labels[novelty > self.novelty_threshold] = UNKNOWN
         if self.fit_threshold is not None and fit is not None:
             labels[torch.from_numpy(fit < self.fit_threshold)] = UNKNOWN
+            if outside is not None:
+                labels[torch.from_numpy(outside)] = UNKNOWN
         if self.volume_threshold is not None and volumes is not None:
             labels[torch.from_numpy(np.asarray(volumes) > self.volume_threshold)] = UNKNOWN
         return Classification(labels=labels.numpy().astype(np.int64),
