@@ -87,6 +87,8 @@ class Classification:
     partial: np.ndarray | None = None    # (B,) gate's p(single-view scan); two-section banks
     fit: np.ndarray | None = None        # (B,) shape-and-size fit to the nearest class
                                          # (bank/taught.py); None when the layer did not run
+    size_misfit: np.ndarray | None = None  # (B,) the answer's size distance over its class's
+                                           # size region (> 1: outside); None without sizes
     volumetric: np.ndarray | None = None  # (B,) share of volumetric neighbourhoods
                                           # (core/surface.py); None without the volume rule
 
@@ -341,11 +343,11 @@ class Classifier:
         """
         prob, novelty, partial = self._evaluate(features)
         prob, novelty = prob.cpu(), novelty.cpu()
-        fit = outside = None
+        fit = misfit = None
         if len(features) and (sizes is not None or self.fit_threshold is not None
                               or self.bank.meta.get('taught')):
             z = self.transform(features.to(self.device)).cpu()
-            prob, fit, outside = self.taught.apply(prob, z, sizes)
+            prob, fit, misfit = self.taught.apply(prob, z, sizes)
         k = max(1, min(top_k, prob.shape[1]))
         top_s, top_i = prob.topk(k, dim=1)
         labels = top_i[:, 0].clone()
@@ -355,8 +357,8 @@ class Classifier:
             labels[novelty > self.novelty_threshold] = UNKNOWN
         if self.fit_threshold is not None and fit is not None:
             labels[torch.from_numpy(fit < self.fit_threshold)] = UNKNOWN
-            if outside is not None:
-                labels[torch.from_numpy(outside)] = UNKNOWN
+            if misfit is not None:
+                labels[torch.from_numpy(misfit > 1.0)] = UNKNOWN
         if self.volume_threshold is not None and volumes is not None:
             labels[torch.from_numpy(np.asarray(volumes) > self.volume_threshold)] = UNKNOWN
         return Classification(labels=labels.numpy().astype(np.int64),
@@ -368,5 +370,7 @@ class Classifier:
                               partial=None if partial is None
                               else partial.cpu().numpy().astype(np.float32),
                               fit=None if fit is None else fit.astype(np.float32),
+                              size_misfit=None if misfit is None
+                              else misfit.astype(np.float32),
                               volumetric=None if volumes is None
                               else np.asarray(volumes, dtype=np.float32))

@@ -197,9 +197,9 @@ def canonical_yaw(xyz: np.ndarray) -> np.ndarray:
     major = vecs[:, 1]                                 # eigenvalues ascend
     c, s = major[0], major[1]
     xy = xy @ np.array([[c, -s], [s, c]])              # major axis -> x
-    # |x|^3 with x's sign, not x ** 3: pow of a negative base takes libm's slow path; the
-    # signs are x ** 3's on the default bank's build and test clouds (see
-    # benchmarks/RESULTS.md), so the banks' frames are x ** 3's.
+    # |x|^3 with x's sign, not x ** 3: pow of a negative base takes libm's slow path (0.28 ms
+    # a cloud). Both give the same signs on all 110,799 default-bank build and test clouds,
+    # the frames the shipped banks were built in.
     signs = np.sign(np.copysign(np.abs(xy) ** 3, xy).mean(axis=0))
     signs[signs == 0] = 1.0
     out = xyz.copy()
