@@ -25,7 +25,7 @@ def main() -> None:
     p.add_argument('--seconds', type=float, default=60.0)
     p.add_argument('--every', type=float, default=5.0)
     args = p.parse_args()
-    lib = kernels.load()
+    lib = kernels.load_bench()
     cpus = default_threads()
     one = measure_peaks(lib, tries=3).ops
     got = []

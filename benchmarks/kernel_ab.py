@@ -8,7 +8,7 @@ alternation on the same synthetic clouds: thread CPU time, one thread, minimum o
 repeats. It also reports each variant's largest relative feature difference to the first.
 
     python benchmarks/kernel_ab.py --variant before=git:HEAD --variant after=tree \
-        --variant after-nosep=tree:-DPGN_NO_SEP256 --repeats 7
+        --variant after-nosep=tree:-DPGN_NO_SEPARABLE_AVX2 --repeats 7
 
 A variant is NAME=tree[:FLAGS] (the working tree's kernels) or NAME=git:REV[:FLAGS] (the
 kernels of a commit, read with `git show`); FLAGS are extra compiler flags, comma separated.
@@ -21,6 +21,7 @@ per-phase split (the phase timers are shared).
 from __future__ import annotations
 
 import argparse
+import ast
 import ctypes
 from pathlib import Path
 import subprocess
@@ -38,34 +39,72 @@ from point_gn_ros.core.encoder import PointGNEncoder
 _KDIR = 'point_gn_ros/core/kernels'
 
 
-def _snapshot(spec: str) -> dict[str, bytes]:
-    """Kernel sources (*.c, *.h) of the working tree or of a git revision."""
+def _git(*args: str) -> bytes:
+    return subprocess.run(['git', *args], check=True, capture_output=True).stdout
+
+
+def _snapshot(spec: str) -> tuple[dict[str, bytes], dict[str, list[str]]]:
+    """Product kernel sources (*.c, *.h; bench/ left out) of the tree or of a git revision.
+
+    Keyed by their paths under kernels/, with each C file's flags as that revision builds it.
+    """
     if spec == 'tree':
-        return {p.name: p.read_bytes() for p in Path(_KDIR).iterdir()
-                if p.suffix in ('.c', '.h')}
-    rev = spec.removeprefix('git:')
-    names = subprocess.run(['git', 'ls-tree', '--name-only', f'{rev}:{_KDIR}'], check=True,
-                           capture_output=True, text=True).stdout.split()
-    return {n: subprocess.run(['git', 'show', f'{rev}:{_KDIR}/{n}'], check=True,
-                              capture_output=True).stdout
-            for n in names if n.endswith(('.c', '.h'))}
+        names = [str(p.relative_to(_KDIR)) for p in Path(_KDIR).rglob('*')
+                 if p.suffix in ('.c', '.h')]
+        sources = {n: (Path(_KDIR) / n).read_bytes() for n in names}
+        init = (Path(_KDIR) / '__init__.py').read_text()
+    else:
+        rev = spec.removeprefix('git:')
+        names = _git('ls-tree', '-r', '--name-only', f'{rev}:{_KDIR}').decode().split()
+        sources = {n: _git('show', f'{rev}:{_KDIR}/{n}') for n in names
+                   if n.endswith(('.c', '.h'))}
+        init = _git('show', f'{rev}:{_KDIR}/__init__.py').decode()
+    sources = {n: b for n, b in sources.items() if not n.startswith('bench/')}
+    return sources, _flags_of(init)
 
 
-def _build(sources: dict[str, bytes], extra: list[str], out_dir: Path) -> Path:
+def _flags_of(init: str) -> dict[str, list[str]]:
+    """Per-file flags from a revision's kernels/__init__.py.
+
+    Its SOURCE_FLAGS (flag sets by name), or in revisions before the subsystem folders its
+    literal _SOURCES dict.
+    """
+    tree = ast.parse(init)
+    consts: dict[str, list[str]] = {}
+    for node in tree.body:
+        if not isinstance(node, (ast.Assign, ast.AnnAssign)):
+            continue
+        target = node.targets[0] if isinstance(node, ast.Assign) else node.target
+        if not isinstance(target, ast.Name) or node.value is None:
+            continue
+        if target.id in ('SOURCE_FLAGS', '_SOURCES') and isinstance(node.value, ast.Dict):
+            return {ast.literal_eval(k): (consts[v.id] if isinstance(v, ast.Name)
+                                          else list(ast.literal_eval(v)))
+                    for k, v in zip(node.value.keys, node.value.values, strict=True)}
+        try:
+            consts[target.id] = list(ast.literal_eval(node.value))
+        except (ValueError, TypeError):
+            pass
+    raise SystemExit('no SOURCE_FLAGS or _SOURCES in kernels/__init__.py')
+
+
+def _build(snapshot: tuple[dict[str, bytes], dict[str, list[str]]], extra: list[str],
+           out_dir: Path) -> Path:
     """Compile like kernels._compile (native variant, per-file flags) plus PGN_PROFILE."""
+    sources, per_file = snapshot
     cc = kernels._compiler()
     if cc is None:
         raise SystemExit('no C compiler')
     flags = [*kernels._COMMON, *kernels._arch_flags(), '-DPGN_PROFILE', *extra]
     for name, data in sources.items():
+        (out_dir / name).parent.mkdir(parents=True, exist_ok=True)
         (out_dir / name).write_bytes(data)
     objs = []
     for name in sorted(sources):
         if not name.endswith('.c'):
             continue
-        per_file = kernels._SOURCES.get(name, ['-ffast-math'])
         obj = out_dir / (name + '.o')
-        subprocess.run([cc, *flags, *per_file, '-c', str(out_dir / name), '-o', str(obj)],
+        subprocess.run([cc, *flags, *per_file[name], '-c', str(out_dir / name), '-o', str(obj)],
                        check=True)
         objs.append(str(obj))
     lib = out_dir / 'libpgn_ab.so'

@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
-"""The 4-bit coarse pass (pgn_scan4.c) of two revisions, timed in one process, interleaved.
+"""The 4-bit coarse pass (pgn_scan_i4.c) of two revisions, timed in one process, interleaved.
 
 usage: benchmarks/scan4_ab.py [--before REV] [--rows 78744] [--codes 288] [--batch 8]
        [--repeats 15]
 
-Compiles core/kernels/pgn_scan4.c of git revision REV (default HEAD) and of the working
+Compiles core/kernels/bank/pgn_scan_i4.c of git revision REV (default HEAD) and of the working
 tree as the package does (-march=native, fast-math), then alternates them on the same
 random packed codes and queries: thread CPU a query for one query and for a batch (the
 best of --repeats), and checks that both give the same integers. The scan section of the
@@ -24,7 +24,7 @@ import numpy as np
 
 from point_gn_ros.core import kernels
 
-_SRC = 'point_gn_ros/core/kernels/pgn_scan4.c'
+_SRC = 'point_gn_ros/core/kernels/bank/pgn_scan_i4.c'
 
 
 def _build(source: bytes, out: Path) -> ctypes.CDLL:

@@ -7,7 +7,7 @@ the scan section alone; with and without the coarse pass split over the helper t
 (bank/search.py, `SPLIT_MIN_ROWS`). `--compare bits` instead compares the scan section's
 index at 4-bit and 8-bit coarse codes (bank/index_basis.py `COARSE_BITS`), both with the
 helper thread. `--case complete --compare nibbles`: complete objects the gate sends to the
-complete section alone, its exact scan from 4-bit nibbles (kernels.lone_dots_i4) against
+complete section alone, its exact scan from 4-bit nibbles (kernels.packed_dots_i4) against
 its int8 codes. `--gap-ms G` idles G ms before each query, as between a sensor's objects.
 Interleaved passes, wall and process CPU time, one torch thread, and whether the answers
 are identical.

@@ -136,7 +136,7 @@ KERNEL_BUILDS = {'portable': ([], set()),
                                         '-mno-avx512vnni'], {'avx512f', 'avx512bw', 'avx512vl'}),
                  'avx512 vnni': (['-mavx512f', '-mavx512bw', '-mavx512vl', '-mavx512vnni'],
                                  {'avx512f', 'avx512bw', 'avx512vl', 'avx512_vnni'}),
-                 # pgn_knn16.c's 16-bit codes (Ice Lake, Zen 4 and later)
+                 # pgn_knn_codes16.c's 16-bit codes (Ice Lake, Zen 4 and later)
                  'avx512 vbmi2': (['-mavx512f', '-mavx512bw', '-mavx512vl', '-mavx512vbmi2'],
                                   {'avx512f', 'avx512bw', 'avx512vl', 'avx512_vbmi2'})}
 

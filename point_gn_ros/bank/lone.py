@@ -110,7 +110,7 @@ class LoneSection:
         """x: (D,) float32 raw features -> probability (C,) float32, novelty."""
         xs, z, u = self.embed(x)
         if self.packed is not None:
-            sims = kernels.lone_dots_i4(self.packed, self.norms, u)
+            sims = kernels.packed_dots_i4(self.packed, self.norms, u)
             labels = self.labels
         elif self.index is None:
             sims = kernels.bank_dots(self.rows, u[None], self.norms)[0]

@@ -18,7 +18,8 @@ if TYPE_CHECKING:
 __all__ = ['PROFILE_SLOTS', 'profile_rows', 'search_roofline_rows']
 
 
-# Instrumented kernel slots (pgn_prof in pgn_stage.c) -> phase names of the roofline table.
+# Instrumented kernel slots (pgn_prof, encoder/pgn_encode.c) -> phase names of the roofline
+# table.
 PROFILE_SLOTS = {8: 'initial embedding', 0: 'FPS', 1: 'kNN', 7: 'feature std',
                  3: 'aggregation stage 1', 4: 'aggregation stage 2', 5: 'aggregation stage 3',
                  6: 'aggregation stage 4', 9: 'pooling', 10: 'offsets and their std',
@@ -58,7 +59,8 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
         return [dict(section='roofline', what='kernel phases', value=float('nan'), unit='ms',
                      note='needs the instrumented kernel: run with --profile from a fresh '
                           'process')]
-    peaks = measure_peaks(lib, tries=2 if quick else 5)
+    bench = kernels.load_bench()     # bench/pgn_peak.c: not in the product library
+    peaks = measure_peaks(bench, tries=2 if quick else 5)
     rows = [dict(section='peaks', what='fp32 lane ops (FMA + add chains)', value=peaks.ops / 1e9,
                  unit='G/s', note='one core, thread CPU time, best of tries'),
             dict(section='peaks', what='exp (encoder polynomial)', value=peaks.exps / 1e9,
@@ -68,7 +70,7 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
             dict(section='peaks', what='read bandwidth, 256 MB (memory)',
                  value=peaks.mem_bw / 1e9, unit='GB/s', note='')]
     cpus = default_threads()          # the CPUs this process may run on
-    together = measure_parallel_ops(lib, cpus, peaks.ops, tries=2 if quick else 3)
+    together = measure_parallel_ops(bench, cpus, peaks.ops, tries=2 if quick else 3)
     cores = together / peaks.ops
     rows.append(dict(section='peaks', what=f'fp32 lane ops, {cpus} CPU(s) at once',
                      value=together / 1e9, unit='G/s',

@@ -142,7 +142,8 @@ class PointGNEncoder:
 
         overlap: a batch of two or more clouds runs on the worker pool while the caller goes
         on (the node classifies the batch ahead meanwhile); otherwise, and for one cloud
-        (which the caller shares with a helper, `_run_lone`), it is encoded before returning.
+        (which the caller shares with the helper thread, `_run_with_helper`), it is encoded
+        before returning.
         The features are the same bits either way. Invalid clouds raise here.
         """
         xyz = torch.as_tensor(xyz)
@@ -188,11 +189,11 @@ class PointGNEncoder:
             return 1
         return 2 if spare_cpu() else 1
 
-    def _run_lone(self, xyz: np.ndarray, out: np.ndarray) -> None:
+    def _run_with_helper(self, xyz: np.ndarray, out: np.ndarray) -> None:
         lib = kernels.load()
         assert lib is not None
         cfg = self.cfg
-        rc = lib.pgn_encode_lone(xyz.ctypes.data, cfg.num_points, cfg.init_dim, cfg.stages,
+        rc = lib.pgn_encode_with_helper(xyz.ctypes.data, cfg.num_points, cfg.init_dim, cfg.stages,
                                  cfg.k, cfg.sigma, self._centres.ctypes.data, cfg.feature_dim,
                                  out.ctypes.data)
         if rc != 0:
@@ -204,7 +205,7 @@ class PointGNEncoder:
         out = np.empty((arr.shape[0], self.cfg.feature_dim), dtype=np.float32)
         workers = min(self.threads, arr.shape[0])
         if arr.shape[0] == 1 and self._lone_threads() == 2:
-            self._run_lone(arr, out)  # the caller and a helper share each stage
+            self._run_with_helper(arr, out)  # the caller and a helper share each stage
         elif workers == 1:
             self._run_chunk(arr, out)
         else:

@@ -2,7 +2,7 @@
 
 Python (before 3.14) names only its own Thread objects; the OS sees every thread as
 "python". On Linux each thread body calls `name_os_thread()` first, as the C kernels'
-helper does with pthread_setname_np ("pgn_lone"); elsewhere it does nothing.
+helper does with pthread_setname_np ("pgn_enc_helper"); elsewhere it does nothing.
 """
 
 from __future__ import annotations

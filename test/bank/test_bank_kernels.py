@@ -229,19 +229,20 @@ def _check_nibbles(dots_i8, dots_i4, seed: int) -> None:
 
 def test_lone_scan_of_nibbles_is_the_int8_scan_bit_for_bit(lib) -> None:
     _check_nibbles(lambda c, nrm, q: kernels.bank_dots(c, q[None], nrm)[0],
-                   kernels.lone_dots_i4, seed=1)
+                   kernels.packed_dots_i4, seed=1)
     codes = np.zeros((2, 24), np.int8)
     with pytest.raises(ValueError, match='16 a group'):
         kernels.pack_nibbles(codes)
     with pytest.raises(ValueError, match='do not fit'):
-        kernels.lone_dots_i4(kernels.pack_nibbles(codes[:, :16]), np.ones(2, np.float32),
+        kernels.packed_dots_i4(kernels.pack_nibbles(codes[:, :16]), np.ones(2, np.float32),
                              np.zeros(8, np.float32))
 
 
 @pytest.mark.parametrize('build', ['portable', 'avx2'])
 def test_lone_scan_of_nibbles_in_other_builds(build: str, tmp_path: Path) -> None:
     """CI machines differ in the path pgn_dots.c takes: each must equal its own int8 scan."""
-    one = kernel_build('pgn_dots.c', build, tmp_path, ('-fno-fast-math', '-ffp-contract=off'))
+    one = kernel_build('bank/pgn_dots.c', build, tmp_path,
+                       ('-fno-fast-math', '-ffp-contract=off'))
     p, i64 = ctypes.c_void_p, ctypes.c_int64
     one.pgn_dots_i8.argtypes = [p, p, i64, i64, p, i64, p]
     one.pgn_dots_i4.argtypes = [p, p, i64, i64, p, p]

@@ -1,4 +1,4 @@
-"""The coarse pass over packed 4-bit codes (core/kernels/pgn_scan4.c, bank/index_basis.py).
+"""The coarse pass over packed 4-bit codes (core/kernels/bank/pgn_scan_i4.c, index_basis.py).
 
 The kernel's integers must equal the plain product of the unpacked codes with the query in
 every build: the one -march=native picks here, and the AVX2, AVX-512 without VNNI and
@@ -71,7 +71,7 @@ def test_scan_i4_equals_the_unpacked_product(r: int) -> None:
 
 @pytest.mark.parametrize('build', list(KERNEL_BUILDS))
 def test_every_simd_path_equals_the_plain_loop(build: str, tmp_path: Path) -> None:
-    lib = kernel_build('pgn_scan4.c', build, tmp_path)
+    lib = kernel_build('bank/pgn_scan_i4.c', build, tmp_path)
     p, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.pgn_scan_i4.restype = lib.pgn_scan_i4_multi.restype = None
     lib.pgn_scan_i4.argtypes = [p, i64, i64, p, p]

@@ -281,9 +281,9 @@ def test_kernel_gelu_matches_erf_gelu() -> None:
 
 def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.ndarray,
                                       naive_real: np.ndarray) -> None:
-    # The AVX2 + FMA kernels (pgn_avx2.c, pgn_avx2_d18.c: stage 1, separable stages, feature
-    # std; AVX2 FPS and kNN in pgn_geom.c) run only on CPUs with AVX2 and without AVX-512;
-    # there the other oracle tests of this file exercise them too.
+    # The AVX2 + FMA kernels (pgn_avx2.c, pgn_avx2_narrow_derived.c: stage 1, separable
+    # stages, feature std; AVX2 FPS and kNN in pgn_geom.c) run only on CPUs with AVX2 and
+    # without AVX-512; there the other oracle tests of this file exercise them too.
     _kernels_or_skip()
     if kernels.simd_width() != 8:
         pytest.skip(f'AVX2 path not built here (simd width {kernels.simd_width()}: '
@@ -312,8 +312,8 @@ def test_avx2_path_agrees_with_oracle(encoder: PointGNEncoder, real_clouds: np.n
 def test_stage1_with_neighbours_in_the_lanes_agrees_with_oracle(
         real_clouds: np.ndarray, init_dim: int, k: int, sigma: float) -> None:
     # AVX-512 and AVX2 builds run stage 1 (16 < D <= 32) with 16 or 8 neighbours in the
-    # lanes and the Gaussians of an axis as running products (pgn_avx512_lanes.c,
-    # pgn_avx2_lanes.c); the blocks per axis depend on sigma (lanes_range_ok)
+    # lanes and the Gaussians of an axis as running products (pgn_avx512_neighbour_lanes.c,
+    # pgn_avx2_neighbour_lanes.c); the blocks per axis depend on sigma (lanes_range_ok)
     _kernels_or_skip()
     if kernels.simd_width() == 0:
         pytest.skip('the portable build runs stage 1 with channels in the lanes')
@@ -336,9 +336,9 @@ def test_the_lone_cloud_helper_is_kept_off_its_callers_cpu(real_clouds: np.ndarr
 
     def helper_cpus() -> set[int]:
         for task in Path('/proc/self/task').iterdir():
-            if (task / 'comm').read_text().strip() == 'pgn_lone':
+            if (task / 'comm').read_text().strip() == 'pgn_enc_helper':
                 return os.sched_getaffinity(int(task.name))
-        raise AssertionError('no pgn_lone thread')
+        raise AssertionError('no pgn_enc_helper thread')
 
     seen = {}
 

@@ -67,7 +67,7 @@ def test_compiled_fps_ties_like_the_oracle(n: int, kind: str) -> None:
 def test_every_simd_build_of_fps_ties_like_the_oracle(build: str, tmp_path: Path) -> None:
     # pgn_geom.c has a portable, an AVX2 and an AVX-512 FPS loop: each build that this CPU
     # runs, against the oracle, with exact ties and a tail beyond the vector blocks
-    lib = kernel_build('pgn_geom.c', build, tmp_path,
+    lib = kernel_build('encoder/pgn_geom.c', build, tmp_path,
                        ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.pgn_fps_from.argtypes = [ptr, ptr, ptr, i64, i64, i64, ptr, ptr]
@@ -91,7 +91,7 @@ def test_fps_over_a_slab_ties_like_the_oracle(build: str, tmp_path: Path) -> Non
     # buckets near each new point on AVX-512, elsewhere it ignores the slab), each build,
     # against the oracle: exact ties, every point taken (the distances fall to 0), blocks
     # past n
-    lib = kernel_build(('pgn_geom.c', 'pgn_slab.c'), build, tmp_path,
+    lib = kernel_build(('encoder/pgn_geom.c', 'encoder/pgn_slab.c'), build, tmp_path,
                        ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.pgn_fps_in.argtypes = [ptr, ptr, ptr, ptr, i64, i64, ptr, ptr, ptr]
@@ -124,12 +124,12 @@ def test_fps_over_a_slab_ties_like_the_oracle(build: str, tmp_path: Path) -> Non
 
 @pytest.mark.parametrize('build', sorted(KERNEL_BUILDS))
 def test_every_simd_build_of_knn_ties_like_the_oracle(build: str, tmp_path: Path) -> None:
-    # pgn_knn.c counts and splits on floats (portable, AVX2, AVX-512), pgn_knn16.c on 16-bit
-    # codes (AVX-512 BW + VBMI2, 64 <= n): each build that this CPU runs, against the oracle's
-    # stable sort, with exact ties, tails past the vector blocks, a middle past 32 keys
+    # pgn_knn.c counts and splits on floats (portable, AVX2, AVX-512), pgn_knn_codes16.c on
+    # 16-bit codes (AVX-512 BW + VBMI2, 64 <= n): each build that this CPU runs, against the
+    # oracle's stable sort, with exact ties, tails past the vector blocks, a middle past 32 keys
     # (duplicates) and centres whose k-th distances differ from their predecessor's guess
-    lib = kernel_build(('pgn_knn.c', 'pgn_knn16.c', 'pgn_slab.c'), build, tmp_path,
-                       ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
+    lib = kernel_build(('encoder/pgn_knn.c', 'encoder/pgn_knn_codes16.c', 'encoder/pgn_slab.c'),
+                       build, tmp_path, ('-ffp-contract=off', '-fno-fast-math', '-fopenmp-simd'))
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     lib.pgn_knn.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, ptr, i64, i64, ptr, ptr, ptr,
                             ctypes.c_float]

@@ -1,35 +1,24 @@
-"""Compiled C kernels for the fast encoder: built with the system C compiler, cached on disk.
+"""Compiled C kernels: built with the system C compiler, cached on disk, loaded with ctypes.
 
-The sources (pgn_*.c, pgn_common.h) ship with the package; `load()` compiles
-them on first use (about a second with gcc) into a per-user cache keyed by the
-source text, the compiler, its flags and the CPU, then loads the shared library
-with ctypes. ctypes releases the GIL during calls, so Python threads run
-clouds in parallel. No network, no Python headers, no torch headers.
+The sources ship with the package, in folders by subsystem (kernels/README.md names each
+file and variant): encoder/ (the Point-GN encoder and what feeds it: FPS, kNN, prepare()),
+bank/ (bank scans, the index's projection and coarse pass, the compiled head) and bench/
+(micro-benchmarks: a library of their own, `load_bench()`, never loaded by the product).
+`load()` compiles encoder/ and bank/ on first use (about a second with gcc) into a per-user
+cache keyed by the source text, the compiler, its flags and the CPU. ctypes releases the
+GIL during calls, so Python threads run clouds in parallel. No network, no Python headers.
 
-The stage loops have three builds, chosen at compile time by what -march=native enables:
-AVX-512 (pgn_avx512.c, pgn_avx512_sep.c, pgn_avx512_lanes.c), AVX2 + FMA (pgn_avx2.c,
-pgn_avx2_d18.c, pgn_avx2_lanes.c; CPUs without AVX-512) and portable C; `simd_width()` says
-which one runs.
-
-pgn_geom.c, pgn_slab.c, pgn_knn.c, pgn_knn16.c, pgn_project.c and pgn_prepare.c are compiled
-without fast-math and with -ffp-contract=off (distances must round exactly like the oracle's;
-an index row's projection must not depend on the rows beside it; prepare()'s normalisation
-rounds like numpy's). The stage files (pgn_stage.c, pgn_plan.c, pgn_avx512.c,
-pgn_avx512_sep.c, pgn_avx512_lanes.c, pgn_avx2.c, pgn_avx2_d18.c, pgn_avx2_lanes.c,
-pgn_encode.c, pgn_phases.c) and pgn_search.c use -ffast-math (vectorised code, glibc's
-libmvec); the two lanes files add -ffp-contract=off (their init rows must round a centre and
-its neighbours alike). pgn_dots.c (the exact
-vote's cosines) is built without fast-math and with -ffp-contract=off, so that a dot's
-summation order is its source's in any batch.
-pgn_head.c (a lone query's head, bank/lone.py: -inf marks absent classes), pgn_lone.c (a
-lone cloud's helper thread) and pgn_peak.c (roofline micro-benchmarks) are built without
-fast-math. The link step omits -ffast-math so that gcc does not add crtfastmath.o, which
-would flush denormals to zero process-wide.
+`SOURCE_FLAGS` is the one table of compile flags. The encoder's stage kernels have one
+build per ISA that -march=native enables (AVX-512, else AVX2 + FMA, else portable C);
+encoder/pgn_dispatch.c maps ISA x variant to each stage's aggregation function, and
+`dispatch_table()` lists it. The link step omits -ffast-math so that gcc does not add
+crtfastmath.o, which would flush denormals to zero process-wide.
 """
 
 from __future__ import annotations
 
 import ctypes
+from dataclasses import dataclass
 import hashlib
 import logging
 import os
@@ -43,40 +32,50 @@ import threading
 import numpy as np
 
 _SRC_DIR = Path(__file__).resolve().parent
-_SOURCES = {'pgn_geom.c': ['-ffp-contract=off', '-fno-fast-math'],
-            'pgn_knn.c': ['-ffp-contract=off', '-fno-fast-math'],
-            # the kNN on 16-bit distance codes (AVX-512 BW and VBMI2)
-            'pgn_knn16.c': ['-ffp-contract=off', '-fno-fast-math'],
-            # slabs: a stage's points in buckets, for FPS and the kNN
-            'pgn_slab.c': ['-ffp-contract=off', '-fno-fast-math'],
-            'pgn_stage.c': ['-ffast-math'],
-            'pgn_plan.c': ['-ffast-math'],  # a stage's kernel plan (separable, lanes)
-            'pgn_avx512.c': ['-ffast-math'],
-            'pgn_avx512_sep.c': ['-ffast-math'],  # the separable stages 2-4 on AVX-512
-            # stage 1 with neighbours in the lanes; no contraction: its init_rows must
-            # round a centre and its neighbours alike
-            'pgn_avx512_lanes.c': ['-ffast-math', '-ffp-contract=off'],
-            'pgn_avx2.c': ['-ffast-math'],  # AVX2 + FMA stage loops (CPUs without AVX-512)
-            'pgn_avx2_d18.c': ['-ffast-math'],  # AVX2 stage 1 with derived Gaussians
-            # AVX2 stage 1, neighbours in the lanes (no contraction: as pgn_avx512_lanes.c)
-            'pgn_avx2_lanes.c': ['-ffast-math', '-ffp-contract=off'],
-            'pgn_encode.c': ['-ffast-math'],
-            'pgn_phases.c': ['-ffast-math'],  # the steps over a range of centres
-            # a lone cloud's helper thread (no arithmetic: the chunks run in pgn_encode.c)
-            'pgn_lone.c': ['-fno-fast-math'],
-            'pgn_search.c': ['-ffast-math'],  # bank scans (bank/search.py)
-            'pgn_scan4.c': ['-ffast-math'],  # the coarse pass over packed 4-bit codes
-            # the exact vote's dot products: one summation order in any batch
-            'pgn_dots.c': ['-fno-fast-math', '-ffp-contract=off'],
-            # the index's projection: row results must not depend on the batch
-            'pgn_project.c': ['-fno-fast-math', '-ffp-contract=off'],
-            # prepare()'s normalisation and yaw alignment: numpy's operations as written
-            'pgn_prepare.c': ['-fno-fast-math', '-ffp-contract=off'],
-            # a lone query through a section's head: -inf marks absent classes
-            'pgn_head.c': ['-fno-fast-math'],
-            'pgn_peak.c': ['-fno-fast-math']}  # micro-benchmarks for the roofline table
+
+# Flag sets, by the invariant each keeps.
+# vectorised loops and glibc's libmvec; every sum's order is still fixed by the source
+_FAST = ('-ffast-math',)
+# as _FAST, and no contraction: a neighbour-lanes kernel's init rows round a centre and its
+# neighbours alike
+_FAST_UNCONTRACTED = ('-ffast-math', '-ffp-contract=off')
+# every operation rounds as written (no reassociation, no FMA contraction): distances like
+# the oracle's, a row's dots and projection the same bits in any batch, prepare() like numpy
+_EXACT = ('-fno-fast-math', '-ffp-contract=off')
+# no reassociation (the helper thread runs chunks with its caller's FP control word; the
+# head's sums in double; the micro-benchmarks' timed chains must not be merged)
+_STRICT = ('-fno-fast-math',)
+
+# Every C file of the product library (path under kernels/) -> its flags beyond _COMMON.
+SOURCE_FLAGS: dict[str, tuple[str, ...]] = {
+    'encoder/pgn_encode.c': _FAST,            # one cloud through the stages; entry points
+    'encoder/pgn_steps.c': _FAST,             # the steps over a range of a stage's centres
+    'encoder/pgn_dispatch.c': _FAST,          # ISA x variant -> aggregation function
+    'encoder/pgn_stage_plan.c': _FAST,        # a stage's separable / neighbour-lanes plan
+    'encoder/pgn_stage_portable.c': _FAST,    # direct and separable aggregation, portable C
+    'encoder/pgn_avx512.c': _FAST,            # narrow aggregation, feature std (AVX-512)
+    'encoder/pgn_avx512_separable.c': _FAST,
+    'encoder/pgn_avx512_neighbour_lanes.c': _FAST_UNCONTRACTED,
+    'encoder/pgn_avx2.c': _FAST,              # narrow, separable, feature std (AVX2 + FMA)
+    'encoder/pgn_avx2_narrow_derived.c': _FAST,
+    'encoder/pgn_avx2_neighbour_lanes.c': _FAST_UNCONTRACTED,
+    'encoder/pgn_helper.c': _STRICT,          # the helper thread of a one-cloud batch
+    'encoder/pgn_geom.c': _EXACT,             # centroid, FPS
+    'encoder/pgn_knn.c': _EXACT,              # kNN on float distances; entry points
+    'encoder/pgn_knn_codes16.c': _EXACT,      # kNN on 16-bit distance codes (AVX-512 VBMI2)
+    'encoder/pgn_slab.c': _EXACT,             # a stage's points in buckets along one axis
+    'encoder/pgn_prepare.c': _EXACT,          # prepare()'s normalisation and yaw alignment
+    'bank/pgn_search.c': _FAST,               # int8 coarse pass, top-m, float32 rescoring
+    'bank/pgn_scan_i4.c': _FAST,              # the coarse pass over packed 4-bit codes
+    'bank/pgn_dots.c': _EXACT,                # the exact vote's dot products
+    'bank/pgn_project.c': _EXACT,             # the index's row-wise projection
+    'bank/pgn_head.c': _STRICT,               # one query through a section's head
+}
+# The micro-benchmarks' library (`load_bench`): never part of the product library.
+BENCH_FLAGS: dict[str, tuple[str, ...]] = {'bench/pgn_peak.c': _STRICT}
 # included by the C files: part of the snapshot and the cache key
-_HEADERS = ('pgn_common.h', 'pgn_geom.h', 'pgn_knn.h', 'pgn_lone.h', 'pgn_phases.h')
+_HEADERS = ('encoder/pgn_common.h', 'encoder/pgn_geom.h', 'encoder/pgn_knn.h',
+            'encoder/pgn_helper.h', 'encoder/pgn_steps.h')
 _COMMON = ['-O3', '-fPIC', '-fopenmp-simd', '-std=gnu11']
 ABI_VERSION = 3
 _log = logging.getLogger(__name__)
@@ -84,6 +83,7 @@ _log = logging.getLogger(__name__)
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
 _error: str | None = None
+_bench: ctypes.CDLL | None = None
 
 
 def cache_dir() -> Path:
@@ -130,17 +130,17 @@ def _variant_flags(variant: str) -> list[str]:
     return _flags() if variant == 'native' else [f for f in _flags() if f not in _arch_flags()]
 
 
-def _sources() -> dict[str, bytes]:
-    """One snapshot of the sources: what is hashed is exactly what is compiled."""
-    return {name: (_SRC_DIR / name).read_bytes() for name in (*_SOURCES, *_HEADERS)}
+def _sources(files: dict[str, tuple[str, ...]]) -> dict[str, bytes]:
+    """One snapshot of a library's sources: what is hashed is exactly what is compiled."""
+    return {name: (_SRC_DIR / name).read_bytes() for name in (*files, *_HEADERS)}
 
 
-def _key(cc: str, sources: dict[str, bytes]) -> str | None:
+def _key(cc: str, files: dict[str, tuple[str, ...]], sources: dict[str, bytes]) -> str | None:
     h = hashlib.sha256()
     for name in sorted(sources):
         h.update(name.encode())
         h.update(sources[name])
-        h.update(' '.join(_SOURCES.get(name, [])).encode())
+        h.update(' '.join(files.get(name, ())).encode())
     try:
         version = subprocess.run([cc, '--version'], capture_output=True, text=True,
                                  check=True).stdout
@@ -155,17 +155,17 @@ def _key(cc: str, sources: dict[str, bytes]) -> str | None:
     return h.hexdigest()[:20]
 
 
-def _compile(cc: str, sources: dict[str, bytes], variant: str, out: Path) -> None:
+def _compile(cc: str, files: dict[str, tuple[str, ...]], sources: dict[str, bytes],
+             variant: str, out: Path) -> None:
     flags = _variant_flags(variant)
     with tempfile.TemporaryDirectory(prefix='pgn_build_') as tmp:
+        for name, data in sources.items():  # the folders as in the package: includes resolve
+            (Path(tmp) / name).parent.mkdir(parents=True, exist_ok=True)
+            (Path(tmp) / name).write_bytes(data)
         objs = []
-        for name in _HEADERS:
-            (Path(tmp) / name).write_bytes(sources[name])
-        for name, extra in _SOURCES.items():
-            src = Path(tmp) / name
-            src.write_bytes(sources[name])
+        for name, extra in files.items():
             obj = Path(tmp) / (name + '.o')
-            subprocess.run([cc, *flags, *extra, '-c', str(src), '-o', str(obj)],
+            subprocess.run([cc, *flags, *extra, '-c', str(Path(tmp) / name), '-o', str(obj)],
                            check=True, capture_output=True, text=True)
             objs.append(str(obj))
         tmp_lib = Path(tmp) / out.name
@@ -178,38 +178,41 @@ def _compile(cc: str, sources: dict[str, bytes], variant: str, out: Path) -> Non
 
 
 def library_path(variant: str = 'native') -> Path | None:
-    """Where the kernel library for these sources/compiler/CPU is (or would be) cached."""
+    """Where the product kernel library for these sources/compiler/CPU is (or would be)."""
     cc = _compiler()
-    key = _key(cc, _sources()) if cc else None
+    key = _key(cc, SOURCE_FLAGS, _sources(SOURCE_FLAGS)) if cc else None
     return None if key is None else cache_dir() / f'libpgn_{key}_{variant}.so'
 
 
-def _find_or_build() -> tuple[Path, str]:
-    """Best cached variant, else build one: (path, variant). Raises the last build error."""
+def _find_or_build(stem: str, files: dict[str, tuple[str, ...]]) -> tuple[Path, str]:
+    """Best cached variant of library `stem`, else build one: (path, variant).
+
+    Raises the last build error.
+    """
     cc = _compiler()
     if cc is None:
         raise OSError('no C compiler (gcc/cc) found')
-    sources = _sources()
-    key = _key(cc, sources)
+    sources = _sources(files)
+    key = _key(cc, files, sources)
     if key is None:
         raise OSError(f'C compiler {cc} does not run')
     dirs = [cache_dir(), Path(tempfile.gettempdir()) / f'point_gn_ros_kernels_{os.getuid()}']
     last: Exception | None = None
     # The best variant already built wins, unless a better one may still be buildable.
     for variant in _VARIANTS:
-        name = f'libpgn_{key}_{variant}.so'
+        name = f'{stem}_{key}_{variant}.so'
         hit = next((d / name for d in dirs if (d / name).exists()), None)
         if hit is not None:
             return hit, variant
         if not any((d / (name + '.failed')).exists() for d in dirs):
             break  # not built yet and not known to fail: build it below
     for variant in _VARIANTS:
-        name = f'libpgn_{key}_{variant}.so'
+        name = f'{stem}_{key}_{variant}.so'
         if any((d / (name + '.failed')).exists() for d in dirs):
             continue
         for d in dirs:  # the cache, else a temp dir when the cache is not writable
             try:
-                _compile(cc, sources, variant, d / name)
+                _compile(cc, files, sources, variant, d / name)
                 return d / name, variant
             except subprocess.CalledProcessError as exc:
                 last = exc
@@ -223,7 +226,7 @@ def _find_or_build() -> tuple[Path, str]:
                 last = exc
     if last is not None:
         raise last
-    raise OSError(f'kernel build failed earlier; see {dirs[0]}/libpgn_{key}_*.failed '
+    raise OSError(f'kernel build failed earlier; see {dirs[0]}/{stem}_{key}_*.failed '
                   '(delete them to retry)')
 
 
@@ -236,18 +239,25 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.pgn_encode.argtypes = [p, i64, i64, i64, i64, i64, f32, p, i64, p]
     lib.pgn_gelu.restype = None
     lib.pgn_gelu.argtypes = [p, i64]
-    lib.pgn_encode_lone.restype = ctypes.c_int
-    lib.pgn_encode_lone.argtypes = [p, i64, i64, i64, i64, f32, p, i64, p]
+    lib.pgn_encode_with_helper.restype = ctypes.c_int
+    lib.pgn_encode_with_helper.argtypes = [p, i64, i64, i64, i64, f32, p, i64, p]
+    lib.pgn_stage_variants.restype = ctypes.c_int
+    lib.pgn_stage_variants.argtypes = [i64, i64, f32, p]
+    lib.pgn_build_isa.restype = ctypes.c_char_p
+    lib.pgn_build_isa.argtypes = []
+    lib.pgn_dispatch_size.restype = ctypes.c_int
+    lib.pgn_dispatch_size.argtypes = []
+    cpp = ctypes.POINTER(ctypes.c_char_p)
+    lib.pgn_dispatch_entry.restype = ctypes.c_int
+    lib.pgn_dispatch_entry.argtypes = [ctypes.c_int, cpp, cpp, cpp]
+    lib.pgn_variant_name.restype = ctypes.c_char_p
+    lib.pgn_variant_name.argtypes = [ctypes.c_int]
     lib.pgn_fps.restype = None
     lib.pgn_fps.argtypes = [p, p, p, p, i64, i64, p, p]
     lib.pgn_fps_from.restype = None
     lib.pgn_fps_from.argtypes = [p, p, p, i64, i64, i64, p, p]
     lib.pgn_knn.restype = None
     lib.pgn_knn.argtypes = [p, p, p, i64, p, p, p, i64, i64, p, p, p, ctypes.c_float]
-    for name, args in (('pgn_peak_ops', [i64]), ('pgn_peak_exp', [i64]),
-                       ('pgn_peak_read', [p, i64, i64])):
-        getattr(lib, name).restype = ctypes.c_double
-        getattr(lib, name).argtypes = args
     lib.pgn_scan_i8.restype = None
     lib.pgn_scan_i8.argtypes = [p, i64, i64, p, p]
     lib.pgn_top_m.restype = i64
@@ -287,7 +297,7 @@ def _declare(lib: ctypes.CDLL) -> None:
 
 
 def load() -> ctypes.CDLL | None:
-    """The compiled kernels (built on first call), or None when no C compiler works.
+    """The product kernels (encoder/, bank/; built on first call), or None without them.
 
     `last_error()` says why it is None. Thread-safe; builds at most once per process.
     """
@@ -299,7 +309,7 @@ def load() -> ctypes.CDLL | None:
             _error = 'disabled by POINT_GN_NO_KERNELS'
             return None
         try:
-            path, variant = _find_or_build()
+            path, variant = _find_or_build('libpgn', SOURCE_FLAGS)
             if variant != 'native':
                 _log.warning('point_gn: using the %s kernel build (slower): %s', variant, path)
             lib = ctypes.CDLL(str(path))
@@ -311,6 +321,85 @@ def load() -> ctypes.CDLL | None:
             detail = getattr(exc, 'stderr', '') or ''
             _error = f'{type(exc).__name__}: {exc} {detail}'.strip()
         return _lib
+
+
+def load_bench() -> ctypes.CDLL:
+    """The micro-benchmarks (bench/pgn_peak.c: the roofline's peaks), built on first call.
+
+    Raises RuntimeError when they cannot be built (they are for `point_gn bench` only).
+    """
+    global _bench
+    with _lock:
+        if _bench is None:
+            try:
+                path, _variant = _find_or_build('libpgn_bench', BENCH_FLAGS)
+            except (OSError, subprocess.CalledProcessError) as exc:
+                detail = getattr(exc, 'stderr', '') or ''
+                raise RuntimeError(f'bench kernels unavailable: {exc} {detail}'.strip()) from exc
+            lib = ctypes.CDLL(str(path))
+            for name, args in (('pgn_peak_ops', [ctypes.c_int64]),
+                               ('pgn_peak_exp', [ctypes.c_int64]),
+                               ('pgn_peak_read', [ctypes.c_void_p, ctypes.c_int64,
+                                                  ctypes.c_int64])):
+                getattr(lib, name).restype = ctypes.c_double
+                getattr(lib, name).argtypes = args
+            _bench = lib
+        return _bench
+
+
+@dataclass(frozen=True)
+class KernelEntry:
+    """One entry of the encoder's dispatch table (encoder/pgn_dispatch.c).
+
+    available: this build holds its function; else `reason` says which ISA is missing.
+    """
+
+    isa: str                # avx512, avx2, portable
+    variant: str            # direct, separable, narrow, narrow_derived, neighbour_lanes
+    needs: frozenset[str]   # CPU flags (/proc/cpuinfo names) its code uses
+    available: bool
+    reason: str | None
+
+
+def build_isa() -> str:
+    """The ISA the loaded build's stage kernels target: avx512, avx2 or portable."""
+    return _require().pgn_build_isa().decode()
+
+
+def dispatch_table() -> list[KernelEntry]:
+    """The encoder's ISA x variant table as this machine's build holds it."""
+    lib = _require()
+    built, cpu = lib.pgn_build_isa().decode(), cpu_flags()
+    out = []
+    for i in range(lib.pgn_dispatch_size()):
+        isa, variant, needs = ctypes.c_char_p(), ctypes.c_char_p(), ctypes.c_char_p()
+        ok = lib.pgn_dispatch_entry(i, ctypes.byref(isa), ctypes.byref(variant),
+                                    ctypes.byref(needs)) == 1
+        need = frozenset(needs.value.decode().split())
+        reason = None
+        if not ok:
+            missing = sorted(need - cpu)
+            if missing:
+                reason = f'this CPU lacks {" ".join(missing)}'
+            elif isa.value.decode() != built:
+                reason = (f"this build targets {built}: -march=native builds one ISA's "
+                          'stage kernels, the widest the CPU has')
+            else:
+                reason = f'compiled out of this {built} build (a PGN_NO_* flag)'
+        out.append(KernelEntry(isa.value.decode(), variant.value.decode(), need, ok, reason))
+    return out
+
+
+def stage_variants(init_dim: int, stages: int, sigma: float) -> list[str]:
+    """The aggregation variant each encoder stage runs in this build: (stages,) names.
+
+    Fixed by the stage's width and sigma, whatever the cloud (encoder/pgn_encode.c).
+    """
+    lib = _require()
+    codes = np.empty(stages, np.int32)
+    if lib.pgn_stage_variants(init_dim, stages, sigma, codes.ctypes.data):
+        raise MemoryError('pgn_stage_variants')
+    return [lib.pgn_variant_name(int(c)).decode() for c in codes]
 
 
 def simd_width() -> int:
@@ -372,7 +461,7 @@ def bank_dots(feats: np.ndarray, queries: np.ndarray, norms: np.ndarray | None =
 
 
 def pack_nibbles(codes: np.ndarray) -> np.ndarray:
-    """(N, d) int8 codes in [-8, 7], d % 16 == 0 -> (N, d / 2) uint8 for `lone_dots_i4`.
+    """(N, d) int8 codes in [-8, 7], d % 16 == 0 -> (N, d / 2) uint8 for `packed_dots_i4`.
 
     Byte b of each group of 16 codes holds code b (low nibble) and code 8 + b (high), + 8:
     one 8-byte load gives two 8-lane steps of pgn_dots.c in index order. (The index's coarse
@@ -386,7 +475,7 @@ def pack_nibbles(codes: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray((u[:, :, 0] | (u[:, :, 1] << 4)).reshape(n, d // 2))
 
 
-def lone_dots_i4(packed: np.ndarray, norms: np.ndarray, query: np.ndarray) -> np.ndarray:
+def packed_dots_i4(packed: np.ndarray, norms: np.ndarray, query: np.ndarray) -> np.ndarray:
     """One query's cosines to rows codes / norms from `pack_nibbles(codes)`: (d,) -> (N,).
 
     Bit for bit `bank_dots(codes, query[None], norms)[0]`, from half its bytes.

@@ -1,16 +1,16 @@
 """Roofline figures for the encoder's phases: peak rates of this core, work per phase.
 
-`measure_peaks()` times micro-benchmarks (pgn_peak.c) with the calling thread's CPU
-clock, so another process on the core does not lower the figure (it only takes wall
-time). `phase_work()` counts, for one cloud of a configuration, the minimal work of
-each phase: fp32 lane operations, exps and bytes read. floor = max(ops / peak_ops +
-exps / peak_exp, bytes / bandwidth); the phase's measured CPU time over its floor says
-how far the code is from this core's limit.
+`measure_peaks()` times micro-benchmarks (bench/pgn_peak.c, `kernels.load_bench()`)
+with the calling thread's CPU clock, so another process on the core does not lower the
+figure (it only takes wall time). `phase_work()` counts, for one cloud of a
+configuration, the minimal work of each phase: fp32 lane operations, exps and bytes read.
+floor = max(ops / peak_ops + exps / peak_exp, bytes / bandwidth); the phase's measured CPU
+time over its floor says how far the code is from this core's limit.
 
 The counts are of the computation, not of our implementation (e.g. a distance is 8
 operations, an aggregated element 5), with exps counted for an axis's Gaussians as one
 running product (2 exps per axis and neighbour: stage 1's neighbour lanes,
-pgn_avx512_lanes.c), the cheapest scheme in the code; the separable stages take one exp
+pgn_avx512_neighbour_lanes.c), the cheapest scheme in the code; the separable stages take one exp
 per block of 16 centres plus one.
 """
 

@@ -1,15 +1,15 @@
-/* A lone cloud's shared steps on the caller plus one helper thread per process.
+/* The helper thread: a one-cloud batch's steps shared between the caller and one helper
+ * thread per process (pgn_encode_with_helper).
  *
- * The helper is started at the first lone cloud and kept: a thread started per cloud (as
- * before 2026-12-03) began running ~3 ms after its creation once the machine had idled,
- * queued on its busy creator's CPU while the other CPU slept. Between clouds it sleeps on a
+ * The helper is started at the first such cloud and kept, so no cloud waits for a thread's
+ * creation and first scheduling. Between clouds it sleeps on a
  * condition variable; each cloud first moves it off the caller's CPU (keep_away), and while
  * it serves a cloud it polls for the next step instead of sleeping between steps.
  *
  * One caller at a time has the helper (`busy`); a second caller meanwhile runs its cloud on
- * its own thread. The per-cloud state is therefore one static struct. Compiled without
- * fast-math: nothing here computes, but the helper runs each chunk with the caller's SSE
- * control word (rounding, flush-to-zero), so a chunk rounds the same on either thread.
+ * its own thread. The per-cloud state is therefore one static struct. Nothing here
+ * computes; the helper runs each chunk with the caller's SSE control word (rounding,
+ * flush-to-zero), so a chunk rounds the same on either thread.
  */
 #define _GNU_SOURCE
 #include <pthread.h>
@@ -23,7 +23,7 @@
 #include <xmmintrin.h>  /* _mm_getcsr / _mm_setcsr */
 #endif
 
-#include "pgn_lone.h"
+#include "pgn_helper.h"
 
 /* The helper yields its CPU once it has polled this long without a step: the serial steps
  * between two shared ones (an FPS, the pooling) take tens of us, and a runnable thread of
@@ -156,7 +156,7 @@ static int started(void) {
                 rt.thread = th;
                 rt.pid = getpid();
 #ifdef __linux__
-                pthread_setname_np(th, "pgn_lone");   /* top -H, /proc/PID/task/.../comm */
+                pthread_setname_np(th, "pgn_enc_helper");   /* top -H, /proc/PID/task/.../comm */
 #endif
             }
             pthread_attr_destroy(&attr);

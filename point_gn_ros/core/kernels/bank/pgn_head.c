@@ -1,9 +1,8 @@
-/* One query through a bank section's head (bank/lone.py): the lone query's path.
+/* The compiled head: one query through a bank section's head (its Python caller in bank/).
  *
- * The torch path (bank/head.py, bank/classifier.py) runs ~40 small ops per query; after a
- * sensor's idle gap each one starts with its code and data out of cache, and the section
- * took 2-2.5x its back-to-back time. Here the same formulas run in two calls around the
- * search (bank_dots or the index's candidates):
+ * The torch reference runs ~40 small ops per query, each of which starts with its code and
+ * data out of cache after a sensor's idle gap. Here the same formulas run in two calls
+ * around the search (bank_dots or the index's candidates):
  *
  * pgn_head_embed: x (D) raw features -> xs (D) = normalize((x - mean) / scale),
  *   z (d) = normalize(((x - mean) / scale) @ P)  (P (D, d) row-major; NULL: z = xs),
@@ -28,8 +27,7 @@
 /* exp(x) in double for x in [-708, 709] (callers' arguments are <= 0 and >= -160):
  * Cody-Waite reduction by ln 2 (the high part has 11 trailing zero bits, so n ln2_hi is
  * exact) and the Taylor polynomial of degree 13 on |r| <= ln 2 / 2 (truncation < 5e-18),
- * within 2 ulp of libm's exp. Branch-free and call-free, so the loops below vectorise;
- * libm's exp and expf there cost ~0.15 ms a query at the shipped bank's 9,843 entries. */
+ * within 2 ulp of libm's exp. Branch-free and call-free, so the loops below vectorise. */
 static inline double exp_d(double x) {
     const double n = __builtin_rint(x * 1.4426950408889634);
     double r = x - n * 0.693145751953125;

@@ -1,8 +1,8 @@
 /* Point-GN k nearest neighbours: each centre's k nearest points, ties to the lower index.
  * This file: the search on float distances (any CPU), the guess and the entry points;
- * pgn_knn16.c: the search on 16-bit codes (AVX-512 BW and VBMI2); pgn_slab.c: the slabs.
+ * pgn_knn_codes16.c: the search on 16-bit codes (AVX-512 BW and VBMI2); pgn_slab.c: the slabs.
  *
- * Compiled WITHOUT -ffast-math and with -ffp-contract=off, like pgn_geom.c: every distance
+ * Built exact (no fast-math, no contraction: SOURCE_FLAGS), like pgn_geom.c: every distance
  * is rounded like the oracle's torch ops ((dx*dx + dy*dy) + dz*dz), so the choices are
  * the oracle's, ties included.
  */
@@ -206,7 +206,7 @@ void pgn_knn_in(const float *x, const float *y, const float *z, int64_t n, const
         return;
     }
 #endif
-    (void)sl;  /* on floats a slab saved no more than it cost (benchmarks/log) */
+    (void)sl;  /* the float search scans every point: a slab does not pay for itself there */
     knn_f32(x, y, z, n, cx, cy, cz, s, k, nb, dist, keys, guess);
 }
 

@@ -1,6 +1,6 @@
-/* Shared by the encoder's C files: pgn_stage.c (portable stage kernels), the ISA kernels
- * (pgn_avx512*.c, pgn_avx2*.c: compiled only where -march=native enables them),
- * pgn_plan.c (a stage's kernel plan), pgn_phases.c (the steps over a range of centres) and
+/* Shared by the encoder's C files: pgn_stage_portable.c (portable stage kernels), the ISA
+ * kernels (pgn_avx512*.c, pgn_avx2*.c: empty unless the build targets their ISA),
+ * pgn_stage_plan.c (a stage's kernel plan), pgn_steps.c (the steps over a range of centres) and
  * pgn_encode.c (one cloud end to end).
  * Hashed with the sources for the kernel cache key (kernels/__init__.py).
  */
@@ -22,7 +22,7 @@
 #define PAD 16
 /* Separable Gaussians pay off from this many centres per axis: stage 2 on where the SIMD
  * builds' stage 1 runs in neighbour lanes; from 4 in the portable build, whose stage 1
- * would otherwise take an exponential a channel (14.6 -> 10.5 ms a cloud, benchmarks/log). */
+ * would otherwise take an exponential a channel. */
 #ifndef SEP_MIN_N
 #if defined(__AVX512F__) || defined(PGN_AVX2)
 #define SEP_MIN_N 36
@@ -42,8 +42,7 @@ static inline float gelu(float x) { return 0.5f * x * (1.0f + erff(x * 0.7071067
  * t = u - the interval's middle; from u = 3.919206, where erf rounds to 1 in float, exactly
  * 1, so that gelu is exactly 0 below about -5.5 (0.99999994 there would leave x 3e-8).
  * Fitted here (least squares, reweighted towards equal ripple) in double: 6e-9 off erf, 6e-8
- * (an ulp near 1) as evaluated in float. libmvec's erff took 0.086 ms a cloud (benchmarks/log).
- * Elsewhere libmvec's erff. */
+ * (an ulp near 1) as evaluated in float. Elsewhere libmvec's erff. */
 static inline void gelu_rows(float *p, int64_t n) {
     float *q = (float *)__builtin_assume_aligned(p, 64);
 #if defined(__AVX512F__)
@@ -127,8 +126,7 @@ typedef struct {
 } sep_t;
 
 /* 2^f on [-1/2, 1/2]: degree-5 polynomial with p(0) = 1 exactly, minimax for the relative
- * error (9.1e-8 in exact arithmetic; the degree-6 Taylor form used before had 1.2e-7 and
- * one FMA more). p(0) = 1 keeps Gaussians of exact-integer exponent unbiased. */
+ * error (9.1e-8 in exact arithmetic). p(0) = 1 keeps Gaussians of exact-integer exponent unbiased. */
 #define PGN_EXP2_C0 1.0f
 #define PGN_EXP2_C1 0.6931469776023396f
 #define PGN_EXP2_C2 0.24022242081246917f
@@ -171,7 +169,7 @@ static inline __m256 exp2_neg_avx2(__m256 t) {
 #endif
 
 #if defined(__AVX2__)
-/* The lanes kernels' reduction (pgn_avx2_lanes.c; pgn_avx512_lanes.c per 8 channels): 8
+/* The lanes kernels' reduction (pgn_avx2_neighbour_lanes.c; pgn_avx512_neighbour_lanes.c per 8 channels): 8
  * channels' lane partials V (8, 8) reduced over the lanes: lane c is channel c's max
  * (MAX) or sum. Rounds: 128-bit halves, pairs, neighbours; the last leaves channel 2 j + h
  * in lane 4 h + j, then one permute. */
@@ -194,8 +192,8 @@ PGN_RED8(pgn_red8_add, _mm256_add_ps)
 #undef PGN_RED8
 #endif
 
-/* Separable Gaussians with neighbours in the lanes (pgn_avx512_lanes.c, pgn_avx2_lanes.c;
- * the plan and the scratch size in pgn_plan.c): nc Gaussians per axis in nblk blocks of B
+/* Separable Gaussians with neighbours in the lanes (pgn_avx512_neighbour_lanes.c,
+ * pgn_avx2_neighbour_lanes.c; the plan and the scratch size in pgn_stage_plan.c): nc Gaussians per axis in nblk blocks of B
  * (the last may be shorter) starting at b[m]; T: (nc,), the T_l of Gaussian j = m B + l. */
 #define PGN_LANES_MAXC 32
 typedef struct {
@@ -214,8 +212,8 @@ typedef struct {
     const float *pts;   /* the stage's points (n, 3): the centres' coordinates */
     float rx;           /* 1 / std of the coordinate offsets */
 } lanes_init_t;
-/* The body of the lanes kernels' init_rows (pgn_avx512_lanes.c, pgn_avx2_lanes.c): the
- * initial Gaussians of the three axes of ng groups of L lanes at coordinates w[3 i + a]
+/* The body of the lanes kernels' init_rows (pgn_avx512_neighbour_lanes.c,
+ * pgn_avx2_neighbour_lanes.c): the initial Gaussians of the three axes of ng groups of L lanes at coordinates w[3 i + a]
  * (clamped to +-W), blockwise U_j = A_m P^l as in the pe chain, the 3 ng chains (at most
  * NVMAX) interleaved; group i's row a n + j (n = lp->nc) at out + L i + (a n + j) stride
  * gets U_j - csub[a n + j] in the lanes of vm[i], else 0, by STORE(p, vm, U, c). V, EXP2,
@@ -244,40 +242,40 @@ typedef struct {
         }                                                                                \
     } while (0)
 #if defined(PGN_AVX2)
-void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_neighbour_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
                               float r, const lanes_t *lp, const lanes_init_t *ini,
                               float *out, float *scr);
 #endif
 #if defined(__AVX512F__)
-void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_neighbour_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                 float r, const lanes_t *lp, const lanes_init_t *ini,
                                 float *out, float *scr);
 #endif
 
-/* pgn_stage.c */
+/* pgn_stage_portable.c */
 void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K);
 void pgn_stage_aggregate(const float *feat, int64_t D, const int64_t *cidx, const int32_t *nb,
                          int64_t S, int64_t K, const float *vx, float r, const float *cc,
                          const int32_t *ax, float q, float *out, float *pe, int64_t PS,
                          float *mx, float *sm, sep_t *fx);
-/* pgn_plan.c */
+/* pgn_stage_plan.c */
 int pgn_sep_ok(int64_t n, double q, int B);
 int pgn_sep_plan(int64_t nc, float q, sep_t *fx, float *b, float *C, float *T);
 
 /* pgn_avx512.c */
 #if defined(__AVX512F__)
-void pgn_aggregate_d32_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_narrow_avx512(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
                               float r, const float *ccs, const __mmask16 *m1,
                               const __mmask16 *m2, float s, float *out, float *acc);
 void pgn_std_centre_avx512(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,
                            const float *cf, float *a1, float *a2);
 #endif
-/* pgn_avx512_sep.c */
+/* pgn_avx512_separable.c */
 #if defined(__AVX512F__) && defined(__AVX512VL__)
-void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_separable_avx512(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
                               float r, float *out, float *mx, float *sm, float *G, float *Gs,
                               float *rT, float *T2, sep_t *fx);
@@ -285,17 +283,17 @@ void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
 
 #if defined(PGN_AVX2)
 /* pgn_avx2.c */
-void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_narrow_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, const float *ccs, const int32_t *lane_axis, float s,
                             float *out, float *acc);
-void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_separable_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, float *out, float *mx, float *sm, float *G, float *RV,
                             float *G2, int32_t *SRC, float *IT, float *T2, sep_t *fx);
-/* pgn_avx2_d18.c */
-int pgn_d18_ok(int64_t D, float q);
-void pgn_aggregate_d18_avx2(const float *feat, int64_t D, const int64_t *cidx,
+/* pgn_avx2_narrow_derived.c */
+int pgn_narrow_derived_ok(int64_t D, float q);
+void pgn_aggregate_narrow_derived_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, const float *cents, float s, float *out, float *acc);
 void pgn_std_centre_avx2(const float *feat, int64_t Dp, const int32_t *nr, int64_t K,

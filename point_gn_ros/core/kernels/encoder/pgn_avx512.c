@@ -1,6 +1,6 @@
 /* Point-GN stage kernels with AVX-512 intrinsics (only where the compiler targets
  * AVX-512; elsewhere this file is empty and pgn_encode.c uses the portable kernels): stage
- * 1's channels-in-lanes kernel and the std pass. The separable stages: pgn_avx512_sep.c. */
+ * 1's channels-in-lanes kernel and the std pass. The separable stages: pgn_avx512_separable.c. */
 #include "pgn_common.h"
 
 #if defined(__AVX512F__)
@@ -11,7 +11,7 @@
  * gives 2^r on [-1/2, 1/2] (PGN_EXP2_C*) and scalef applies 2^k exactly, also
  * for huge k (-> 0), so no clamping is needed.
  * ccs: (64,) pe-lane centres times s; m1, m2: (4,) lane masks axis >= 1, axis >= 2. */
-void pgn_aggregate_d32_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_narrow_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                  const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                  float r, const float *ccs, const __mmask16 *m1,
                                  const __mmask16 *m2, float s, float *out, float *acc) {

@@ -6,13 +6,13 @@
 
 #if defined(PGN_AVX2)
 /* Stage aggregation for 16 < D <= 32 (stage 1 of the default encoder, D = 27), as
- * pgn_aggregate_d32_avx512: lanes [0, 32) are pe channels [0, 32) (offset half), lanes
+ * pgn_aggregate_narrow_avx512: lanes [0, 32) are pe channels [0, 32) (offset half), lanes
  * [32, 64) pe channels [D, D + 32) (centre half); Gaussians as 2^-(u s)^2. Sixteen ymm
  * registers do not hold both halves' 16 accumulators and 8 Gaussian vectors, so each half
  * walks the K neighbours on its own (4 vectors, 8 accumulators in registers).
  * ccs: (64,) pe-lane centres times s; lane_axis: (64,) axis of each lane; acc: 64 floats;
  * vx: (S, K, 3) plus one readable float after the last offset. */
-void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_narrow_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, const float *ccs, const int32_t *lane_axis, float s,
                             float *out, float *acc) {
@@ -66,13 +66,13 @@ void pgn_aggregate_d32_avx2(const float *feat, int64_t D, const int64_t *cidx,
     }
 }
 
-/* Separable stages with AVX2 (blocks of 8), as pgn_aggregate_sep_avx512's sep_pass: pe is
+/* Separable stages with AVX2 (blocks of 8), as pgn_aggregate_separable_avx512's sep_pass: pe is
  * never stored; the pe of a block is A[t, a, m] * (T[m, 0..8) * P[t, a]^(0..8)), the powers
  * by blends of P, P^2, P^4 multiplied in the same order as the AVX-512 masked multiplies.
  * AVX2 has no cheap masked store, so max and sum live in a per-axis padded layout (axis a
  * at a * 8M, lanes past its n centres computed and ignored) and a block never spills into
  * the next axis. G: per lane cf[ch] (ch < D) or cf[ch - D]; RV: r / T where ch < D, else 0;
- * G2: 0 where ch < D, else G / T (T folded out: pgn_aggregate_sep_avx2). */
+ * G2: 0 where ch < D, else G / T (T folded out: pgn_aggregate_separable_avx2). */
 #ifndef SEP_NT
 #define SEP_NT 8  /* neighbours per pass: one max / sum update per block */
 #endif
@@ -137,7 +137,7 @@ static inline __attribute__((always_inline)) void sep_pass8(
 
 /* All S centres of a separable stage (fx->B == 8). mx, sm, G, RV, G2, SRC: 3 * 8 * fx->M
  * floats (SRC: int32) each, 32-byte aligned. */
-void pgn_aggregate_sep_avx2(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_separable_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, float *out, float *mx, float *sm, float *G, float *RV,
                             float *G2, int32_t *SRC, float *IT, float *T2, sep_t *fx) {

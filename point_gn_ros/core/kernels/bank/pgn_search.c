@@ -26,7 +26,7 @@ void pgn_scan_i8(const int8_t *codes, int64_t n, int64_t r, const int8_t *q, int
             qv[j] = _mm512_cvtepi8_epi16(_mm256_loadu_si256((const void *)(q + 32 * j)));
         for (int64_t i = 0; i < n; ++i) {
             const int8_t *row = codes + i * r;
-            if (i + 16 < n)     /* as pgn_scan4.c: the hardware prefetchers lag after idle time */
+            if (i + 16 < n)     /* as pgn_scan_i4.c: the hardware prefetchers lag after idle time */
                 for (int64_t o = 0; o < r; o += 64) __builtin_prefetch(row + 16 * r + o);
             __m512i acc = _mm512_setzero_si512(), acc2 = acc;
             int64_t j = 0;
@@ -84,7 +84,7 @@ enum { SCAN_BLOCK = 64, SCAN_GROUP = 4 };
 
 void pgn_scan_i8_multi(const int8_t *codes, int64_t n, int64_t r, const int8_t *q,
                        int64_t nq, int32_t *out) {
-    if (nq == 1) {      /* a lone query: the single-query loop (the same sums) */
+    if (nq == 1) {      /* one query: the single-query loop (the same sums) */
         pgn_scan_i8(codes, n, r, q, out);
         return;
     }
@@ -167,7 +167,6 @@ static int64_t indices_ge(const int32_t *s, int64_t n, int32_t t, int32_t *out) 
  * passes (interpolated towards m + m/4, as the kNN brackets its k-th distance), the
  * indices at or above it are gathered in one pass, and the exact m-th value is found among
  * those few by bisection. Every pass is a vector compare over the scores: the histogram
- * and sort this replaces took ~0.1 ms a query at the shipped scan section's 78,744 entries.
  * keys: n int64 of scratch (the gathered indices and their scores, n int32 each).
  * Returns min(m, n). */
 int64_t pgn_top_m(const int32_t *s, int64_t n, int64_t m, int32_t *idx, int64_t *keys) {

@@ -1,8 +1,8 @@
-/* A lone cloud's shared steps on the caller plus the process's one helper thread
- * (pgn_lone.c). Each step is cut into chunks claimed from an atomic counter; a chunk's
+/* A one-cloud batch's steps shared by the caller and the process's one helper thread
+ * (pgn_helper.c). Each step is cut into chunks claimed from an atomic counter; a chunk's
  * result must depend on that chunk only, so that the split never changes a bit. */
-#ifndef PGN_LONE_H
-#define PGN_LONE_H
+#ifndef PGN_HELPER_H
+#define PGN_HELPER_H
 
 #include <stdint.h>
 

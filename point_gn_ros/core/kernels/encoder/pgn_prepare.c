@@ -1,7 +1,7 @@
 /* The end of core/sampling.py's prepare() for one cloud: normalisation to the unit sphere and
  * the optional yaw alignment, in double like sampling.normalize and sampling.canonical_yaw
- * (their numpy forms stay the reference). Compiled without fast-math and with
- * -ffp-contract=off, so every operation rounds as written.
+ * (their numpy forms stay the reference). Built exact (no fast-math, no contraction:
+ * SOURCE_FLAGS), so every operation rounds as written.
  *
  * normalize: the same operations in the same order as numpy's (column sums in row order,
  * squared radii ((x^2 + y^2) + z^2)), so the same bits. canonical_yaw: numpy takes the

@@ -4,7 +4,7 @@
  * pgn_dots_f32: out[b * n + i] = <feats[i], q[b]>, float32 rows.
  * pgn_dots_i8:  out[b * n + i] = <codes[i], q[b]> / norms[i], the int8 codes of a bank
  *               stored as int8 / int4 (its rows are codes / ||codes||): a quarter of the
- *               bytes of its float32 rows, so a lone query's scan reads 5 MB, not 20.
+ *               bytes of its float32 rows, so one query's scan reads 5 MB, not 20.
  *
  * Every dot is summed in one order fixed by this source whatever the batch: one 8-lane
  * partial sum over the row in steps of 8 (fused multiply-add where the CPU has it, by
@@ -128,8 +128,7 @@ void pgn_dots_i8(const int8_t *codes, const float *norms, int64_t n, int64_t d,
 /* ---- One query against 4-bit codes, 16 values to 8 bytes (kernels.pack_nibbles) ----
  * Byte b of a row's group g holds code 16 g + b in its low nibble and code 16 g + 8 + b in
  * its high one, each + 8. A bank stored as int4 has codes in [-7, 7], so half the bytes of
- * its int8 codes, and one load per 16 values instead of two: a lone query of the shipped
- * complete section takes ~0.5 ms less (benchmarks/log, 2026-12-04). Every row's sum is
+ * its int8 codes, and one load per 16 values instead of two. Every row's sum is
  * pgn_dots_i8's, operation for operation: the same 8-lane partial sums in index order
  * (d % 16 == 0: no tail), the same lane tree and division, so the cosines are the int8
  * scan's bit for bit. */

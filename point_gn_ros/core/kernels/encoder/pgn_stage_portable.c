@@ -1,11 +1,9 @@
 /* Point-GN stage kernels, portable C: separable-Gaussian factors (pgn_sep_prepare), the
  * generic neighbourhood aggregation (pgn_stage_aggregate); the separable form's plan is in
- * pgn_plan.c.
+ * pgn_stage_plan.c.
  *
- * Compiled with -O3 -march=native -ffast-math; the geometry (FPS, kNN) lives in pgn_geom.c,
- * compiled without fast-math so neighbour choices match the oracle exactly; pgn_avx512.c,
- * pgn_avx512_sep.c and pgn_avx512_lanes.c hold the AVX-512 versions, pgn_encode.c drives
- * one cloud through the stages.
+ * The ISA versions are in pgn_avx512*.c and pgn_avx2*.c (pgn_dispatch.c's table);
+ * pgn_encode.c drives one cloud through the stages.
  */
 #include "pgn_common.h"
 
@@ -15,7 +13,7 @@
 static inline float exp_fast(float x) {
     /* k by a truncating conversion of t +- 1/2 (roundf's value but where t + 1/2 rounds up
      * to the next integer, which the reduction absorbs): it vectorises on plain SSE2, where
-     * roundf has no vector instruction and kept the loops scalar (benchmarks/log) */
+     * roundf has no vector instruction and would keep the loops scalar */
     const float t = x * 1.44269504088896341f;
     const int32_t ki = (int32_t)(t + __builtin_copysignf(0.5f, t));
     const float kf = (float)ki;
@@ -113,7 +111,7 @@ void pgn_sep_prepare(sep_t *fx, const float *v, int64_t K) {
         float *A = fx->A + m * nta;
 #if defined(__AVX512F__)
         /* 16 lanes: 2^-(u^2 |q| log2 e) by rounding + polynomial + scalef (as in
-         * pgn_aggregate_d32_avx512), the exponent clamped like exp_fast's -87 */
+         * pgn_aggregate_narrow_avx512), the exponent clamped like exp_fast's -87 */
         const __m512 vb = _mm512_set1_ps(bm), vs = _mm512_set1_ps(-q * 1.44269504088896341f);
         const __m512 tmax = _mm512_set1_ps(87.0f * 1.44269504088896341f);
         for (int64_t i = 0; i < nta; i += 16) {

@@ -1,13 +1,13 @@
 /* Point-GN encoder, one cloud at a time, fused: no (S, k, D) tensor is ever built. This file
  * holds the stage loop (work space, FPS, the steps' set-up and kernel choice, pooling) and
- * the entry points; the steps over a range of centres are in pgn_phases.c.
+ * the entry points; the steps over a range of centres are in pgn_steps.c.
  *
- * Compiled with -O3 -march=native -ffast-math. Results are a pure function of one cloud,
- * whatever the batch or thread, so batches are invariant; a lone cloud may share its
- * stages with a helper thread (pgn_encode_lone), bit-identically.
+ * Results are a pure function of one cloud, whatever the batch or thread, so batches are
+ * invariant; a one-cloud batch may share its stages with the helper thread
+ * (pgn_encode_with_helper, pgn_helper.c), bit-identically.
  */
-#include "pgn_lone.h"
-#include "pgn_phases.h"
+#include "pgn_helper.h"
+#include "pgn_steps.h"
 
 int pgn_abi_version(void) { return 3; }
 
@@ -67,7 +67,7 @@ static float inv_std(const float *part, int64_t S, double count) {
 #endif
 
 /* 64-byte aligned, not zeroed: for the buffers every row of which is written before it is
- * read (the offsets, the kNN rows: 0.02 ms a cloud of memset saved) */
+ * read (the offsets, the kNN rows) */
 static void *xalloc_raw(size_t bytes) {
     const size_t sz = (bytes + 63) / 64 * 64;
     return aligned_alloc(64, sz ? sz : 64);
@@ -82,9 +82,59 @@ static void *xalloc(size_t bytes) {
 
 
 
+/* Whether a stage of input width D runs with neighbours in the lanes: only 16 < D <= 32,
+ * where no separable plan applies (B = 0) and a block plan is safe; lanes, b, T filled. */
+static int lanes_plan(int64_t D, int64_t nc, float q, int B, lanes_t *lanes, float *b, float *T) {
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_NEIGHBOUR_LANES)
+    return !B && D > 16 && D <= 32 && pgn_lanes_plan(nc, q, lanes, b, T);
+#else
+    (void)D; (void)nc; (void)q; (void)B; (void)lanes; (void)b; (void)T;
+    return 0;
+#endif
+}
+
+/* The aggregation variant of a stage of input width D (pgn_dispatch.c's table): B, the
+ * separable plan's block (0: none), use_lanes from lanes_plan. */
+static pgn_variant stage_variant(int64_t D, float q, int B, int use_lanes) {
+    (void)q;
+    if (use_lanes) return PGN_NEIGHBOUR_LANES;
+    if (B) return PGN_SEPARABLE;
+    if (D > 16 && D <= 32) {
+#if defined(PGN_AVX2) && !defined(PGN_NO_NARROW) && !defined(PGN_NO_NARROW_DERIVED)
+        if (pgn_narrow_derived_ok(D, q)) return PGN_NARROW_DERIVED;
+#endif
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_NARROW)
+        return PGN_NARROW;
+#endif
+    }
+    return PGN_DIRECT;
+}
+
+/* The aggregation variant each stage of an encoder (init_dim, stages, sigma) runs in this
+ * build: out (stages) pgn_variant codes (pgn_variant_name). The choice depends on the
+ * stage's width and sigma only, never on the cloud. Returns 0, or -1 when out of memory. */
+int pgn_stage_variants(int64_t init_dim, int64_t stages, float sigma, int32_t *out) {
+    const float q = -0.5f / (sigma * sigma);
+    const int64_t Mmax = ((init_dim << stages) / 3 + 7) / 8;
+    float *b = xalloc(sizeof(float) * (size_t)Mmax), *C = xalloc(sizeof(float) * (size_t)Mmax);
+    float *T = xalloc(sizeof(float) * (size_t)(Mmax + 1) * 16);
+    int rc = b && C && T ? 0 : -1;
+    for (int64_t st = 0, D = init_dim; !rc && st < stages; ++st, D *= 2) {
+        const int64_t nc = 2 * D / 3;
+        sep_t fx;
+        lanes_t lanes;
+        float lanes_b[PGN_LANES_MAXC], lanes_T[PGN_LANES_MAXC];
+        const int B = pgn_sep_plan(nc, q, &fx, b, C, T);
+        out[st] = (int32_t)stage_variant(D, q, B, lanes_plan(D, nc, q, B, &lanes, lanes_b,
+                                                             lanes_T));
+    }
+    free(b); free(C); free(T);
+    return rc;
+}
+
 /* Encode one cloud. xyz: (num_points, 3); cents: concatenated Gaussian centre
  * tables (init block of init_dim/3, then 2*D_i/3 per stage); out: (feature_dim,).
- * par: the helper thread's runtime for a lone cloud, or NULL.
+ * par: the helper thread's runtime (pgn_helper.c), or NULL.
  * Returns 0, or -1 when out of memory. */
 static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cents, float *out,
                       pgn_par *par) {
@@ -96,7 +146,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     const int64_t Dmax = D0 << cfg->stages;  /* widest 2D */
     /* Every stage holds S_i rows of padded(2 D_i) <= N * D0 + S_i * PAD features. */
     const int64_t fsz = N * (D0 + PAD);
-    /* + 16: kernels that read a row's last vector whole (pgn_avx512_sep.c) stay inside;
+    /* + 16: kernels that read a row's last vector whole (pgn_avx512_separable.c) stay inside;
      * not zeroed: every row a stage reads is written first, padding lanes as 0 */
     float *featA = xalloc_raw(sizeof(float) * (size_t)(fsz + 16));
     float *featB = xalloc_raw(sizeof(float) * (size_t)(fsz + 16));
@@ -118,7 +168,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
     float *sepC = xalloc(sizeof(float) * (size_t)Mmax);
     float *sepT = xalloc(sizeof(float) * (size_t)(Mmax + 1) * 16);
     float *sepA = xalloc(sizeof(float) * (size_t)K1 * 3 * Mmax);
-    /* rows 0..8 of E, then AVX-512's E16 (K1, 16) 64-byte aligned (pgn_avx512_sep.c) */
+    /* rows 0..8 of E, then AVX-512's E16 (K1, 16) 64-byte aligned (pgn_avx512_separable.c) */
     const size_t sepEn = (size_t)K1 * 3 * (9 + 16) + 16;
     float *sepE = xalloc(sizeof(float) * sepEn);
     /* the helper's own scratch (pe buffers, mx / sm, separable A / E) */
@@ -205,25 +255,26 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             cx[c] = x[cidx[c]]; cy[c] = y[cidx[c]]; cz[c] = z[cidx[c]];
             cxyz[c * 3] = cx[c]; cxyz[c * 3 + 1] = cy[c]; cxyz[c * 3 + 2] = cz[c];
         }
-        /* the separable form's blocks (pgn_plan.c), 0 where it is not used */
+        /* the separable form's blocks (pgn_stage_plan.c), 0 where it is not used */
         sep_t fxs;
         const int B = pgn_sep_plan(nc, q, &fxs, sepb, sepC, sepT);
-#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_NEIGHBOUR_LANES)
         /* stage 1 (16 < D <= 32) with neighbours in the lanes where a block plan is safe */
         lanes_t lanes;
         float lanes_b[PGN_LANES_MAXC], lanes_T[PGN_LANES_MAXC];
-        const int use_lanes = !B && D > 16 && D <= 32
-                              && pgn_lanes_plan(nc, q, &lanes, lanes_b, lanes_T);
+        const int use_lanes = lanes_plan(D, nc, q, B, &lanes, lanes_b, lanes_T);
         /* on the initial embedding, its rows from the points (lanes_init_t) */
         lanes_t ilanes;
         float ilanes_b[PGN_LANES_MAXC], ilanes_T[PGN_LANES_MAXC];
         lanes_init_t ini = {&ilanes, xyz, 1.0f};
         const int use_ini = use_lanes && st == 0 && PGN_INI_ROWS
                             && pgn_lanes_plan(D / 3, q, &ilanes, ilanes_b, ilanes_T);
+#else
+        const int use_lanes = 0;
 #endif
         /* each chunk of centres: their kNN rows, then their offset rows and float sums of
          * v and v^2 and of the feature offsets e and e^2 (added below in double in centre
-         * order), in one step that a lone cloud shares with the helper; the aggregation's
+         * order), in one step that the helper may share; the aggregation's
          * chunks scale their own offset rows by 1 / std */
         TIC(3);
         /* 16 chunks on two threads: a claimed chunk is short, so the caller never waits
@@ -240,7 +291,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         oj.keys[0] = keys; oj.keys[1] = keys2;
         oj.tail[0] = tails; oj.tail[1] = par ? tails + K1 + 16 : NULL;
         oj.offs = 1;
-#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_NEIGHBOUR_LANES)
         oj.pts = use_ini;
 #endif
         oj.xyz = xyz; oj.qx = cx; oj.qy = cy; oj.qz = cz; oj.nb = nb; oj.S = S; oj.K = K;
@@ -269,17 +320,19 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         job.pe[0] = pe; job.mx[0] = mx; job.sm[0] = sm;
         job.pe[1] = pe2; job.mx[1] = vec2; job.sm[1] = vec2 ? vec2 + VS : NULL;
         if (fx) {
-            job.use_fx = 1;
             job.fx[0] = *fx;
             job.fx[1] = *fx;
             job.fx[1].A = sepA2;
             job.fx[1].E = sepE2;
         }
-#if defined(__AVX512F__) && !defined(PGN_NO_D32)
+        const pgn_variant v = stage_variant(D, q, B, use_lanes);
+        const int narrow = v == PGN_NARROW || v == PGN_NARROW_DERIVED;
+        (void)narrow;
+#if defined(__AVX512F__)
         const float sc = sqrtf(-q * 1.44269504088896341f);
         float ccs[64];
         __mmask16 m1[4] = {0}, m2[4] = {0};
-        if (!fx && D > 16 && D <= 32) {
+        if (narrow) {
             /* register-resident path; pe lanes: channels [0, 32) and [D, D + 32) */
             for (int i = 0; i < 64; ++i) {
                 const int64_t ch = i < 32 ? i : D + (i - 32);
@@ -288,30 +341,24 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
                 if (axis >= 1) m1[i / 16] |= (__mmask16)(1u << (i % 16));
                 if (axis >= 2) m2[i / 16] |= (__mmask16)(1u << (i % 16));
             }
-            job.d32 = 1;
             job.ccs = ccs; job.m1 = m1; job.m2 = m2; job.sc = sc;
         }
-#elif defined(PGN_AVX2) && !defined(PGN_NO_D32)
+#elif defined(PGN_AVX2)
         const float sc = sqrtf(-q * 1.44269504088896341f);
         float ccs[64];
         int32_t lane_axis[64];
-        if (!fx && D > 16 && D <= 32) {
+        if (narrow) {
             /* the same lanes as the AVX-512 path, axis per lane instead of masks */
             for (int i = 0; i < 64; ++i) {
                 const int64_t ch = i < 32 ? i : D + (i - 32);
                 lane_axis[i] = ch < D2 ? (int32_t)(ch / nc) : 0;
                 ccs[i] = ch < D2 ? cents[ch % nc] * sc : 0.0f;
             }
-            job.d32 = 1;
             job.ccs = ccs; job.lane_axis = lane_axis; job.sc = sc;
-#if !defined(PGN_NO_D18)
-            /* 4 exps per neighbour instead of 8 where the factors stay in range */
-            job.d18 = pgn_d18_ok(D, q);
             job.cents = cents;
-#endif
         }
 #endif
-#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
+#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_NEIGHBOUR_LANES)
         if (use_lanes) {
             job.lanes = &lanes;
             job.lscr[0] = lscr;
@@ -324,7 +371,7 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
         }
 #endif
 #if defined(PGN_AVX2)
-        if (!job.lanes && (job.d32 || job.d18)) {
+        if (narrow) {
             /* these kernels read a float or more past a centre's offset rows, into rows the
              * other thread may be scaling: scaled in a step of their own first */
             agg_job xj;
@@ -335,12 +382,13 @@ static int encode_one(const float *xyz_in, const pgn_cfg *cfg, const float *cent
             job.vx_scale = NULL;
         }
 #endif
-        if (!job.use_fx && !job.lanes && !job.d32) {
-            /* the generic kernel's per-channel centre and axis (padding lanes: ignored) */
+        if (v == PGN_DIRECT) {
+            /* the direct kernel's per-channel centre and axis (padding lanes: ignored) */
             for (int64_t d = 0; d < VS; ++d) { cc[d] = 0.0f; ax[d] = 0; }
             for (int64_t a = 0, d = 0; a < 3; ++a)
                 for (int64_t j = 0; j < nc; ++j, ++d) { cc[d] = cents[j]; ax[d] = (int32_t)a; }
         }
+        job.aggregate = pgn_kernel_for(v);
         pgn_par_run(par, pgn_phase_chunk, &job, job.nchunks);
         TOC(4, 3 + st);
         TIC(9);
@@ -402,12 +450,13 @@ int pgn_encode(const float *xyz, int64_t count, int64_t num_points, int64_t init
     return 0;
 }
 
-/* One cloud on the calling thread plus the process's helper thread (pgn_lone.c), which
+/* One cloud on the calling thread plus the process's helper thread (pgn_helper.c), which
  * shares the kNN, std and aggregation steps; bit-identical to pgn_encode. Runs on one
  * thread when another caller has the helper or no helper can start. Returns 0, or -1 when
  * out of memory. */
-int pgn_encode_lone(const float *xyz, int64_t num_points, int64_t init_dim, int64_t stages,
-                    int64_t k, float sigma, const float *cents, int64_t feature_dim, float *out) {
+int pgn_encode_with_helper(const float *xyz, int64_t num_points, int64_t init_dim,
+                           int64_t stages, int64_t k, float sigma, const float *cents,
+                           int64_t feature_dim, float *out) {
     (void)feature_dim;
     pgn_cfg cfg = {num_points, init_dim, stages, k, sigma};
     pgn_par *par = pgn_par_begin();

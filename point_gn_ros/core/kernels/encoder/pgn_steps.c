@@ -1,11 +1,9 @@
 /* The encoder's steps over a range of a stage's centres: kNN rows, coordinate offsets, the
  * feature-offset std's partials and the aggregation (the ISA kernel chosen by pgn_encode.c).
- * Every centre's result depends on that centre only, so the chunks of a lone cloud give the
- * same bits on either thread.
- *
- * Compiled with -O3 -march=native -ffast-math, like pgn_encode.c.
+ * Every centre's result depends on that centre only, so the chunks of a cloud give the
+ * same bits on either thread (pgn_helper.c).
  */
-#include "pgn_phases.h"
+#include "pgn_steps.h"
 
 /* The std pass's partials of one centre: the sums of e and e^2 over the offsets e of its
  * K neighbours' feature rows from its own row cf (Dp channels), as floats. s1, s2: Dp
@@ -80,7 +78,7 @@ static void offsets_centres(const float *xyz, const float *cx, const float *cy,
             /* 4 floats a neighbour in and out, the 4th (the next point's x; xyz has 4
              * floats of slack) overwritten by the next store and kept out of the sums; the
              * last neighbour by scalars: its 4th float would land in the next centre's
-             * row, which the other thread of a lone cloud may have written already */
+             * row, which the helper thread may have written already */
             const __m128 q4 = _mm_setr_ps(qx, qy, qz, 0.0f);
             const __m128 m3 = _mm_castsi128_ps(_mm_setr_epi32(-1, -1, -1, 0));
             __m128 s1a = _mm_setzero_ps(), s1b = s1a, s2a = s1a, s2b = s1a;
@@ -141,65 +139,6 @@ static void std_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
 #endif
 }
 
-/* Stage aggregation of centres [c0, c1) by the kernel the job chose: rows of pooled values
- * before gelu, zero padded to D2p. */
-static void aggregate_centres(agg_job *j, int tid, int64_t c0, int64_t c1) {
-    const int64_t *cidx = j->cidx + c0;
-    const int32_t *nb = j->nb + c0 * j->K;
-    const float *vx = j->vx + c0 * j->K * 3;
-    float *out = j->out + c0 * j->D2p;
-#if (defined(__AVX512F__) || defined(PGN_AVX2)) && !defined(PGN_NO_LANES)
-    if (j->lanes) {  /* stage 1 with neighbours in the lanes */
-#if defined(__AVX512F__)
-        pgn_aggregate_lanes_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes,
-                                   j->ini, out, j->lscr[tid]);
-#else
-        pgn_aggregate_lanes_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->lanes,
-                                 j->ini, out, j->lscr[tid]);
-#endif
-        return;
-    }
-#endif
-#if defined(__AVX512F__) && !defined(PGN_NO_D32)
-    if (j->d32) {
-        pgn_aggregate_d32_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs, j->m1,
-                             j->m2, j->sc, out, j->mx[tid]);
-        return;
-    }
-#endif
-#if defined(PGN_AVX2) && !defined(PGN_NO_D32)
-    if (j->d18) {
-        pgn_aggregate_d18_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cents,
-                               j->sc, out, j->mx[tid]);
-        return;
-    }
-    if (j->d32) {
-        pgn_aggregate_d32_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->ccs,
-                               j->lane_axis, j->sc, out, j->mx[tid]);
-        return;
-    }
-#endif
-#if defined(PGN_AVX2) && !defined(PGN_NO_SEP256)
-    if (j->use_fx) {  /* G, RV, G2, SRC in the pe buffers, which this path does not use */
-        pgn_aggregate_sep_avx2(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
-                               j->sm[tid], j->pe[tid], j->pe[tid] + j->PS, j->pe[tid] + 3 * j->PS,
-                               (int32_t *)(j->pe[tid] + 2 * j->PS), j->pe[tid] + 4 * j->PS,
-                               j->pe[tid] + 5 * j->PS, &j->fx[tid]);
-        return;
-    }
-#endif
-#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
-    if (j->use_fx) {
-        pgn_aggregate_sep_avx512(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, out, j->mx[tid],
-                                 j->sm[tid], j->pe[tid], j->pe[tid] + j->PS,
-                                 j->pe[tid] + 2 * j->PS, j->pe[tid] + 3 * j->PS, &j->fx[tid]);
-        return;
-    }
-#endif
-    pgn_stage_aggregate(j->feat, j->D, cidx, nb, c1 - c0, j->K, vx, j->r, j->cc, j->ax, j->q, out,
-                    j->pe[tid], j->PS, j->mx[tid], j->sm[tid], j->use_fx ? &j->fx[tid] : NULL);
-}
-
 void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
     agg_job *j = job;
     const int64_t c0 = j->S * chunk / j->nchunks, c1 = j->S * (chunk + 1) / j->nchunks;
@@ -227,6 +166,6 @@ void pgn_phase_chunk(void *job, int tid, int64_t chunk) {
         for (int64_t u = 0; u < (c1 - c0) * j->K * 3; ++u) v[u] *= rx;
         if (j->scale_only) return;
     }
-    aggregate_centres(j, tid, c0, c1);
+    j->aggregate(j, tid, c0, c1);
     gelu_rows(j->out + c0 * j->D2p, (c1 - c0) * j->D2p);
 }

@@ -1,10 +1,10 @@
-/* The encoder's steps over a range of a stage's centres (pgn_phases.c): kNN, coordinate
+/* The encoder's steps over a range of a stage's centres (pgn_steps.c): kNN, coordinate
  * offsets, the feature-offset std's partials and the aggregation, as one job type that
- * pgn_encode.c fills and runs whole, or, for a lone cloud, cut into chunks shared with the
- * helper thread (pgn_lone.c).
+ * pgn_encode.c fills and runs whole, or cut into chunks shared with the helper thread
+ * (pgn_helper.c).
  */
-#ifndef PGN_PHASES_H
-#define PGN_PHASES_H
+#ifndef PGN_STEPS_H
+#define PGN_STEPS_H
 
 #include "pgn_common.h"
 #include "pgn_geom.h"
@@ -26,7 +26,23 @@ static inline void pgn_prof_split(int slot, double t0) {
 #endif
 
 
-/* A lone cloud on two threads: the caller and one helper share each stage's
+struct agg_job;
+/* A stage's aggregation over centres [c0, c1) of job j on thread tid (0 caller, 1 helper):
+ * rows of pooled values before gelu, zero padded to D2p. */
+typedef void (*pgn_aggregate_fn)(const struct agg_job *j, int tid, int64_t c0, int64_t c1);
+
+/* The aggregation variants (kernels/README.md); pgn_dispatch.c maps ISA x variant to its
+ * function. */
+typedef enum {
+    PGN_DIRECT,           /* one exponential per pe channel and neighbour */
+    PGN_SEPARABLE,        /* separable Gaussians on the stage's uniform grid (sep_t) */
+    PGN_NARROW,           /* 16 < D <= 32: all of a centre's 2 D channels in registers */
+    PGN_NARROW_DERIVED,   /* narrow, half the exponentials: the others derived from them */
+    PGN_NEIGHBOUR_LANES,  /* 16 < D <= 32: neighbours in the lanes, running products */
+    PGN_NVARIANTS
+} pgn_variant;
+
+/* A cloud on two threads: the caller and one helper share each stage's
  * aggregation by chunks of centres, claimed from an atomic counter. Every centre's
  * result depends on that centre only, so the split never changes a bit. The caller
  * works through the chunks itself and waits only for chunks the helper has claimed:
@@ -71,11 +87,13 @@ typedef struct agg_job {
     float r, q;
     float *out;
     sep_t fx[2];          /* per thread: its own A / E scratch */
-    int use_fx, d32;
     float *pe[2], *mx[2], *sm[2];
     const lanes_t *lanes;  /* stage 1 with neighbours in the lanes (SIMD builds), else NULL */
     float *lscr[2];        /* its scratch, per thread */
     const lanes_init_t *ini;  /* stage 1's rows from the points (SIMD builds), or NULL */
+    /* the aggregation kernel: pgn_dispatch.c's entry for this build's ISA and the stage's
+     * variant (pgn_encode.c chooses it) */
+    pgn_aggregate_fn aggregate;
 #if defined(__AVX512F__)
     const float *ccs;
     const __mmask16 *m1, *m2;
@@ -84,13 +102,16 @@ typedef struct agg_job {
     const float *ccs;
     const int32_t *lane_axis;
     float sc;
-    const float *cents;   /* this stage's centres of one axis (d18) */
-    int d18;
+    const float *cents;   /* this stage's centres of one axis (narrow_derived) */
 #endif
 } agg_job;
 
 /* Chunk `chunk` (of job->nchunks) of an agg_job on thread tid: centres
- * [S chunk / nchunks, S (chunk + 1) / nchunks). The lone runtime's chunk function. */
+ * [S chunk / nchunks, S (chunk + 1) / nchunks). The helper runtime's chunk function. */
 void pgn_phase_chunk(void *job, int tid, int64_t chunk);
+
+/* This build's kernel for a variant: its ISA's entry, else the portable one (direct and
+ * separable exist for every build); NULL where neither is built. */
+pgn_aggregate_fn pgn_kernel_for(pgn_variant v);
 
 #endif

@@ -1,6 +1,6 @@
 /* Shared by the kNN's two files (pgn_knn.c: float distances and the entry points;
- * pgn_knn16.c: 16-bit codes): keys, the middle of a bracket, the next threshold.
- * Both are compiled WITHOUT -ffast-math and with -ffp-contract=off (kernels/__init__.py).
+ * pgn_knn_codes16.c: 16-bit codes): keys, the middle of a bracket, the next threshold.
+ * Both are built exact (no fast-math, no contraction: kernels/__init__.py SOURCE_FLAGS).
  */
 #ifndef PGN_KNN_H
 #define PGN_KNN_H
@@ -69,7 +69,7 @@ static inline float bracket_tau(float lo, float hi, int64_t clo, int64_t chi, in
 
 
 #if defined(__AVX512BW__) && defined(__AVX512VBMI2__)
-/* pgn_knn16.c: the search on 16-bit codes for centres [0, s) (64 <= n < 65536), in a slab
+/* pgn_knn_codes16.c: the search on 16-bit codes for centres [0, s) (64 <= n < 65536), in a slab
  * where sl is given. */
 void pgn_knn_codes(const float *x, const float *y, const float *z, int64_t n, const float *cx,
                    const float *cy, const float *cz, int64_t s, int64_t k, int32_t *nb,

@@ -2,7 +2,7 @@
  * pgn_knn.c): 32 points a vector, in a centre's slab (pgn_slab.c) where that is exact.
  * Elsewhere pgn_knn.c searches on floats.
  *
- * Compiled WITHOUT -ffast-math and with -ffp-contract=off, like pgn_knn.c.
+ * Built exact (no fast-math, no contraction: SOURCE_FLAGS), like pgn_knn.c.
  */
 #include <math.h>
 #include <stdint.h>

@@ -1,12 +1,12 @@
 /* Stage 1 of the encoder on AVX2 + FMA (CPUs without AVX-512) with half the exps of
- * pgn_aggregate_d32_avx2 (pgn_avx2.c): Gaussians of one block of centres per axis by
+ * pgn_aggregate_narrow_avx2 (pgn_avx2.c): Gaussians of one block of centres per axis by
  * 2^-t, the others derived from them. Compiled only where PGN_AVX2 (pgn_common.h);
- * pgn_encode.c calls it where pgn_d18_ok(). */
+ * pgn_encode.c calls it where pgn_narrow_derived_ok(). */
 #include "pgn_common.h"
 
 #if defined(PGN_AVX2)
 /* Stage 1 with half the exps (8 < n <= 18 centres per axis, n even: D = 18..27), the
- * arithmetic per pe element of pgn_aggregate_d32_avx2 in axis-aligned vectors: per
+ * arithmetic per pe element of pgn_aggregate_narrow_avx2 in axis-aligned vectors: per
  * neighbour and axis a, the Gaussians of centres 8..15 (B_a) by 2^-t; those of centres
  * 0..7 (L_a) and 16, 17 (T) as B_a * K * R, since for a centre c' = c -+ 8h
  * 2^-(s c' - v)^2 = 2^-(s c - v)^2 * 2^((s c)^2 - (s c')^2) * 2^(+-2 mu v) (v = s w,
@@ -34,7 +34,7 @@ typedef struct {
     int st[D18_NV];                    /* row offset of lane 0 */
 } d18_tab;
 
-int pgn_d18_ok(int64_t D, float q) {
+int pgn_narrow_derived_ok(int64_t D, float q) {
     const int64_t n = 2 * D / 3;
     /* s^2 = -q log2(e) <= 8 (sigma >= 0.3): K and R stay within a few dozen binades near
      * the derived Gaussians' peaks, so their rounding stays at ~1e-7 relative */
@@ -196,9 +196,9 @@ static inline __attribute__((always_inline)) void d18_body(
     }
 }
 
-/* All S centres of stage 1 where pgn_d18_ok(D, q); cents: the n centres of one axis;
+/* All S centres of stage 1 where pgn_narrow_derived_ok(D, q); cents: the n centres of one axis;
  * s = sqrt(-q log2 e); acc: 56 floats, 32-byte aligned (the d32 kernels' 64 suffice). */
-void pgn_aggregate_d18_avx2(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_narrow_derived_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             const int32_t *nb, int64_t S, int64_t K, const float *vx,
                             float r, const float *cents, float s, float *out, float *acc) {
     d18_tab tb __attribute__((aligned(32)));

@@ -1,5 +1,5 @@
 /* The encoder's geometry, built without fast-math (pgn_geom.c: FPS; pgn_knn*.c: kNN), for
- * its callers: pgn_phases.h (the encoder's steps) and pgn_prepare.c (midpoint_fill's
+ * its callers: pgn_steps.h (the encoder's steps) and pgn_prepare.c (midpoint_fill's
  * neighbours). Hashed with the sources for the kernel cache key (kernels/__init__.py).
  */
 #ifndef PGN_GEOM_H

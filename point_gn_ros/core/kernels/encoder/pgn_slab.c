@@ -1,6 +1,6 @@
 /* Slabs: the points of a stage in buckets along one axis, so that FPS and the kNN look only
  * at the points near a point on that axis where that is exact (pgn_geom.c, pgn_knn.c,
- * pgn_knn16.c). Built without fast-math, like them.
+ * pgn_knn_codes16.c). Built without fast-math, like them.
  */
 #include <math.h>
 #include <stdint.h>
@@ -23,8 +23,7 @@ int64_t pgn_slab_floats(int64_t n) {
  * buckets near each new point (pgn_fps_in, AVX-512), and the kNN on 16-bit codes searches
  * them (pgn_knn_in, AVX-512 BW and VBMI2). Built where AVX-512 runs, n >= 6 k (stage 1 of the
  * default: 1,024 points, k 120) and n < 65,536 (16-bit indices); else, or for points with
- * no spread, it returns 0 (no slab) and both search all points (on AVX2, the float kNN over
- * a slab saved no more than the slab cost: benchmarks/log). A counting sort: within a bucket,
+ * no spread, it returns 0 (no slab) and both search all points. A counting sort: within a bucket,
  * index order. A pure function of the points: every thread's centres see the same slabs.
  * buf: pgn_slab_floats(n). */
 int pgn_slab_build(const float *x, const float *y, const float *z, int64_t n, int64_t k,

@@ -1,14 +1,14 @@
 /* Stage aggregation with neighbours in the lanes (AVX-512), for 16 < D <= 32: stage 1 of
  * the default encoder (D = 27: 54 pe channels, 18 Gaussians per axis).
  *
- * pgn_aggregate_d32_avx512 puts channels in the lanes and evaluates every Gaussian with its
+ * pgn_aggregate_narrow_avx512 puts channels in the lanes and evaluates every Gaussian with its
  * own exponential: 4 vectors of exp a neighbour. Here the 16 lanes are 16 neighbours of one
  * centre and each axis's channels are walked along its grid of centres b_0 + j h. In a
  * block starting at b_m, pe_l = T_l U_l with U_l = A_m P^l, A_m = exp(q (b_m - w)^2),
  * P = exp(-2 q h w) (w: the neighbour's offset on that axis) and T_l = exp(2 q l h b_m +
  * q l^2 h^2): the separable form of sep_t, the powers taken one step at a time. An axis
  * then costs 2 exponentials per 16 neighbours (one block) instead of one per channel.
- * pgn_lanes_plan (pgn_plan.c) picks the blocks (lanes_range_ok).
+ * pgn_lanes_plan (pgn_stage_plan.c) picks the blocks (lanes_range_ok).
  *
  * The offset half needs the neighbours' feature rows by channel, in a channel-major table
  * per centre. On the initial embedding (lanes_init_t: stage 1 of the encoder) a row is the
@@ -16,15 +16,15 @@
  * by the same chain (init_rows); elsewhere the rows are read and transposed. Each
  * channel's max and sum are kept per lane and
  * reduced over the lanes at the end of the centre. Features stay within a few 1e-6 of the
- * oracle (benchmarks/log); a result depends on its centre only, so batches, threads and a
- * lone cloud's chunks stay bit-identical.
+ * oracle; a result depends on its centre only, so batches, threads and the helper's
+ * chunks stay bit-identical.
  */
 #include "pgn_common.h"
 
 #if defined(__AVX512F__)
 /* 16 channels' lane partials V (16, 16) reduced over the lanes: lane c of the result is
  * channel c's max (MAX) or sum. In 256-bit operations (half the cost of 512-bit ones on
- * Zen 4; 0.010 ms a cloud less than a 512-bit halving tree): each channel's two halves
+ * Zen 4): each channel's two halves
  * combined, then pgn_red8 per 8 channels, the two results joined. */
 #define PGN_RED16(NAME, OP, RED8)                                                        \
     static inline __m512 NAME(const float *V) {                                         \
@@ -57,7 +57,7 @@ __attribute__((noinline)) static void init_rows(const __m512 *w, int ng, const l
 #undef PGN_ROW_STORE
 }
 
-void pgn_aggregate_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_neighbour_lanes_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                 const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                 float r, const lanes_t *lp, const lanes_init_t *ini,
                                 float *out, float *scr) {

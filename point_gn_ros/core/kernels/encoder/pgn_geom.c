@@ -1,6 +1,6 @@
 /* Point-GN geometry kernels: centroid and farthest point sampling (the kNN: pgn_knn.c).
  *
- * Compiled WITHOUT -ffast-math and with -ffp-contract=off: every distance is
+ * Built exact (no fast-math, no contraction: SOURCE_FLAGS): every distance is
  * rounded exactly like the oracle's torch ops ((dx*dx + dy*dy) + dz*dz, each
  * product and sum rounded to float32), so FPS choices are identical,
  * ties included (lowest index wins).
@@ -178,7 +178,7 @@ static void fps_from_avx2(const float *x, const float *y, const float *z, int64_
 /* fps_from_avx2 with 16 lanes and masks: the running (max, first index) per lane in four
  * chains of 16 points, merged once per step. Same distances (mul, then add: no
  * contraction), same first maximum. pgn_fps_from's block loop spent a horizontal max and
- * a branch per 16 points (benchmarks/log, "FPS on AVX-512"). */
+ * a branch per 16 points. */
 static inline void fps_merge16(__m512 *bv, __m512i *bi, __m512 v, __m512i i) {
     const __mmask16 take = _mm512_cmp_ps_mask(v, *bv, _CMP_GT_OQ)
                            | (_mm512_cmp_ps_mask(v, *bv, _CMP_EQ_OQ)

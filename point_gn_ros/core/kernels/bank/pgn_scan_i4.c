@@ -18,9 +18,8 @@
 #endif
 
 enum { CHUNK = 64, MAX_CHUNKS = 16 };   /* rows of up to 2,048 codes take the SIMD paths */
-/* Software prefetch this many bytes ahead of the row being scanned: after idle time the
- * hardware prefetchers alone left a 11 MB pass at 1.46 ms instead of 1.01 (16 rows of
- * 288 codes ahead; benchmarks/log, "Third session of 2026-12-03"). */
+/* Software prefetch this many bytes ahead of the row being scanned (16 rows of 288 codes):
+ * after idle time the hardware prefetchers alone do not keep the pass at memory speed. */
 enum { PREFETCH_AHEAD = 2304 };
 
 static int32_t query_sum(const int8_t *q, int64_t r) {
@@ -164,8 +163,7 @@ static void scan_avx512(const uint8_t *packed, int64_t n, int64_t p, const q4_t 
 
 /* A batch's block of rows with the nibbles already split (u: per row, per chunk, the low
  * then the high nibbles as bytes, 2 NC vectors): each query then spends only its 2 NC dot
- * products a row, where it also spent the 3 NC operations of the split (a batch of 8 at
- * the scan section: 0.27 -> 0.23 ms a query). */
+ * products a row, not also the 3 NC operations of the split. */
 #define PGN_SCAN4U(NAME, NC)                                                              \
     static void NAME(const __m512i *u, int64_t n, const q4_t *s, int32_t *out) {          \
         __m512i lo[NC], hi[NC];                                                           \

@@ -1,5 +1,5 @@
-/* Stage 1 (16 < D <= 32) with neighbours in the lanes, AVX2 + FMA: pgn_avx512_lanes.c with
- * 8-float lanes, for CPUs without AVX-512 (PGN_AVX2). An axis's Gaussians are running
+/* Stage 1 (16 < D <= 32) with neighbours in the lanes, AVX2 + FMA:
+ * pgn_avx512_neighbour_lanes.c with 8-float lanes, for CPUs without AVX-512 (PGN_AVX2). An axis's Gaussians are running
  * products U_{l+1} = U_l P from U_0 = A (2 exponentials per axis and 8 neighbours, one
  * block at the default sigma), T folded out of the products and back in on the results;
  * the offset half's rows computed from the points on the initial embedding (init_rows8),
@@ -43,8 +43,8 @@ __attribute__((noinline)) static void init_rows8(const __m256 *w, int ng, const 
         sm = _mm256_add_ps(sm, w);                                                       \
     }
 
-/* As pgn_aggregate_lanes_avx512; scr: pgn_lanes_scratch(K) floats, 64-byte aligned. */
-void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
+/* As pgn_aggregate_neighbour_lanes_avx512; scr: pgn_lanes_scratch(K) floats, 64-byte aligned. */
+void pgn_aggregate_neighbour_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
                               const int32_t *nb, int64_t S, int64_t K, const float *vx,
                               float r, const lanes_t *lp, const lanes_init_t *ini,
                               float *out, float *scr) {
@@ -62,7 +62,7 @@ void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
     const __m256 ql = _mm256_set1_ps(lp->ql), nh2ql = _mm256_set1_ps(-lp->h2ql);
     const __m256 ninf = _mm256_set1_ps(-INFINITY), zero = _mm256_setzero_ps();
     const __m256i iota = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-    /* as pgn_avx512_lanes.c: the rows' factor sc (T0 rs where ini), a centre's own U */
+    /* as pgn_avx512_neighbour_lanes.c: the rows' factor sc (T0 rs where ini), a centre's own U */
     float sc[64], zero1[64], cu[32 * 8] __attribute__((aligned(32))), cuj[32];
     const int64_t n0 = ini ? ini->lp->nc : 0;
     for (int64_t ch = 0; ch < 64; ++ch) {
@@ -189,7 +189,7 @@ void pgn_aggregate_lanes_avx2(const float *feat, int64_t D, const int64_t *cidx,
                             else { PGN_CHANNEL(0, PGN_ROW) }
 #undef PGN_ROW
                         } else if (ini) {
-                            /* as pgn_avx512_lanes.c: w grows with U here (g, U >= 0) */
+                            /* as pgn_avx512_neighbour_lanes.c: w grows with U here (g, U >= 0) */
                             const __m256 gv = _mm256_set1_ps(cf[ch - D] * ct[ch]);
                             __m256 s2 = zero;
                             mx = zero;

@@ -1,8 +1,6 @@
 /* A stage's kernel plan, fixed by its grid of Gaussian centres and q alone: whether the
  * separable form (sep_t) is safe and with which blocks (pgn_sep_plan, from pgn_encode.c),
  * and the neighbour-lanes kernels' blocks and per-channel factors (lanes_t).
- *
- * Compiled with -O3 -march=native -ffast-math, like pgn_encode.c.
  */
 #include "pgn_common.h"
 
@@ -34,7 +32,7 @@ static int chain_ok(int64_t nc, double q, int B) {
  * used (fx untouched). */
 int pgn_sep_plan(int64_t nc, float q, sep_t *fx, float *b, float *C, float *T) {
     int B = 0;
-#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEP512)
+#if defined(__AVX512F__) && defined(__AVX512VL__) && !defined(PGN_NO_SEPARABLE_AVX512)
     if (pgn_sep_ok(nc, (double)q, 16) && tfold_ok(nc, (double)q, 15)) B = 16;
 #endif
 #if defined(PGN_AVX2)
@@ -128,8 +126,8 @@ int pgn_lanes_plan(int64_t nc, float q, lanes_t *lp, float *b, float *T) {
     return 0;
 }
 
-/* Floats of scratch the neighbour-lanes kernels (pgn_avx512_lanes.c, pgn_avx2_lanes.c) need
- * for K neighbours and D <= 32: the (D + 3, Kc) tables, Kc = K rounded up to 128, two rows
+/* Floats of scratch the neighbour-lanes kernels (pgn_avx512_neighbour_lanes.c,
+ * pgn_avx2_neighbour_lanes.c) need for K neighbours and D <= 32: the (D + 3, Kc) tables, Kc = K rounded up to 128, two rows
  * of Kc (AVX2: a chunk's P and lane masks), 64 channels' lane partials twice, and 4 rows of
  * 64 per-channel values. */
 int64_t pgn_lanes_scratch(int64_t K) {

@@ -1,8 +1,7 @@
 /* Point-GN's separable stages (2-4 of the default encoder) with AVX-512 intrinsics: blocks
  * of 8 (sep_pass) or 16 (sep_group16, sep_centre16) Gaussians of one axis a vector, from
- * pgn_sep_prepare's factors (pgn_stage.c). Only where the compiler targets AVX-512 F and
- * VL; elsewhere this file is empty and pgn_encode.c uses the AVX2 or portable kernels.
- * Split from pgn_avx512.c on 2026-12-05. */
+ * pgn_sep_prepare's factors (pgn_stage_portable.c). Only where the compiler targets AVX-512 F and
+ * VL; elsewhere this file is empty (pgn_dispatch.c's table). */
 #include "pgn_common.h"
 
 #if defined(__AVX512F__) && defined(__AVX512VL__)
@@ -15,8 +14,7 @@
  * above (G holds cf[ch] / cf[ch - D]); lanes past an axis's n centres are masked off.
  * mx, sm, G: 2D + 16 floats of scratch. Blocks of 8 (sep_pass) take four neighbours a
  * pass, like pgn_stage_aggregate; blocks of 16 (sep_centre16) run each group of blocks
- * over all K neighbours with its max and sum in registers (benchmarks/log, "2026-12-05,
- * second session"). */
+ * over all K neighbours with its max and sum in registers. */
 static inline __attribute__((always_inline)) void sep_pass(
         const float *const *rows, int nt, int64_t t0, int64_t nta, const sep_t *fx,
         int64_t D, const float *G, float r, float *mx, float *sm) {
@@ -96,7 +94,7 @@ static inline __attribute__((always_inline)) void sep_group16(
      * smallest (pl) can win only where gs < -ph: w(pl) - w(ph) = (pl - ph)(pl + ph + gs).
      * The centre's feature g >= -0.17 (a gelu) and the nearest neighbour's Gaussian is
      * mostly near 1, so that is rare, and only such blocks take a second pass for pl: a min
-     * a step in every block cost more (benchmarks/log, "2026-12-05, fifth session"). */
+     * a step in every block costs more. */
 #define PGN_STEP(u, t)                                                                     \
     do {                                                                                   \
         __m512 e_ = _mm512_load_ps(E16 + (t) * 16);                                        \
@@ -237,7 +235,7 @@ static void sep_centre16(const sep_t *fx, int64_t D, const float *feat, int64_t 
     }
 }
 
-void pgn_aggregate_sep_avx512(const float *feat, int64_t D, const int64_t *cidx,
+void pgn_aggregate_separable_avx512(const float *feat, int64_t D, const int64_t *cidx,
                                  const int32_t *nb, int64_t S, int64_t K, const float *vx,
                                  float r, float *out, float *mx, float *sm, float *G,
                                  float *Gs, float *rT, float *T2, sep_t *fx) {
