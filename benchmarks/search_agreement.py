@@ -33,9 +33,9 @@ import torch
 
 from point_gn_ros.bank.builder import encode_dataset
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.lone import LoneSection
-from point_gn_ros.bank.search import CANDIDATES, COARSE_BITS, IndexedSearch
+from point_gn_ros.bank.index import CANDIDATES, COARSE_BITS, IndexedSearch
 from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.vote import CompiledHead
 from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.datasets.views import ViewsDataset
@@ -124,7 +124,8 @@ def main() -> None:
                                    coarse_dims=dims or None, candidates=m,
                                    code_bits=bits)
         build = time.process_time() - t0
-        sec.lone = LoneSection.build(sec)             # the lone path reads the search
+        sec.compiled_head = CompiledHead.build(sec.transform, sec.head, sec.bank.num_classes,
+                                               sec.search)   # it reads the search
         p, nov = clf.evaluate(feats)
         lab = p.argmax(1).numpy()
         index = sec.search.index

@@ -31,9 +31,9 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     import point_gn_ros.bank.classifier as clf_mod
-    import point_gn_ros.bank.search as search_mod
-    from point_gn_ros.bank.lone import LoneSection
-    from point_gn_ros.bank.search import IndexedSearch
+    import point_gn_ros.bank.index as search_mod
+    from point_gn_ros.bank.index import IndexedSearch
+    from point_gn_ros.bank.vote import CompiledHead
     from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
     from point_gn_ros.recognizer import Recognizer
 
@@ -55,10 +55,12 @@ def main() -> None:
         for mode, bits in zip(modes, (4, 8), strict=True):
             views.search = IndexedSearch(views.features, views.labels, views.bank.num_classes,
                                          code_bits=bits)
-            searches[mode] = (views.search, LoneSection.build(views))
+            searches[mode] = (views.search, CompiledHead.build(
+                views.transform, views.head, views.bank.num_classes, views.search))
     elif args.compare == 'nibbles':
         modes = ('nibbles', 'int8 codes')
-        lone, packed = rec.classifier.lone, rec.classifier.lone.packed
+        search = rec.classifier.search
+        packed = search._packed
     else:
         modes = ('helper thread', 'one thread')
     times: dict[str, list[float]] = {m: [] for m in modes}
@@ -67,9 +69,9 @@ def main() -> None:
     for _ in range(args.passes):
         for mode in modes:
             if args.compare == 'bits':
-                views.search, views.lone = searches[mode]
+                views.search, views.compiled_head = searches[mode]
             elif args.compare == 'nibbles':
-                lone.packed = packed if mode == 'nibbles' else None
+                search._packed = packed if mode == 'nibbles' else None
             else:
                 on = mode == 'helper thread'
                 clf_mod.helper_thread = helper if on else (lambda: None)

@@ -32,8 +32,8 @@ import torch
 
 from point_gn_ros.bank import selection as sel
 from point_gn_ros.bank.builder import feature_cache_path
-from point_gn_ros.bank.head import CovarianceFit
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.discriminant import CovarianceFit
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset

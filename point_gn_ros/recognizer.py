@@ -131,6 +131,13 @@ class Recognizer:
         self.resample = resample
         self.top_k = top_k
 
+    def set_unknown_threshold(self, unknown_threshold: float | None) -> None:
+        """Set the classifier's probability / calibrated unknown rule.
+
+        As bank/classifier.py `unknown_rules` resolves it; raises ValueError as it does.
+        """
+        self.classifier.set_unknown_threshold(unknown_threshold)
+
     @classmethod
     def from_bank(cls, path: str | os.PathLike[str] | None = None, device: str = 'cpu',
                   resample: ResampleMethod = 'fps', top_k: int = 5,

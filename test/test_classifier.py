@@ -4,11 +4,18 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank import head as head_mod
+from point_gn_ros.bank import vote as vote_mod
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.classifier import UNKNOWN, Classifier, class_scores
+from point_gn_ros.bank.classifier import Classifier, UNKNOWN
 from point_gn_ros.core.config import EncoderConfig
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
+from point_gn_ros.bank.vote import log_vote_shares
+
+
+def class_scores(query: torch.Tensor, feats: torch.Tensor, labels: torch.Tensor,
+                 num_classes: int, gamma: float) -> torch.Tensor:
+    """The reference kernel-vote shares (bank/vote.py `log_vote_shares`): (B, C)."""
+    return log_vote_shares(query @ feats.T, labels, num_classes, gamma).exp()
 
 
 def _bank(n: int = 200, classes: int = 5, gamma: float = 20.0, seed: int = 0,
@@ -48,7 +55,7 @@ def test_chunked_scores_equal_unchunked(monkeypatch: pytest.MonkeyPatch) -> None
     bank = _bank()
     q = torch.randn(50, bank.features.shape[1])
     full = Classifier(bank).scores(q)
-    monkeypatch.setattr(head_mod, '_MAX_BLOCK', 1000)  # 5 queries per block
+    monkeypatch.setattr(vote_mod, 'MAX_BLOCK', 1000)  # 5 queries per block
     assert torch.allclose(Classifier(bank).scores(q), full, atol=1e-6)
 
 

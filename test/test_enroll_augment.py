@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank.enroll import (BankFile, EnrollError, RefitPolicy, add_examples,
-                                      class_counts, example_counts, predictable, remove_class)
+from point_gn_ros.bank.enroll import (BankFile, EnrollError, add_examples, class_counts,
+                                      predictable, remove_class)
+from point_gn_ros.bank.refit import RefitPolicy, example_counts
 from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.bank.refit import example_groups
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.augment import AUGMENTS, variants_per_example, yaw_variants
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.sampling import prepare

@@ -12,7 +12,7 @@ import torch
 from point_gn_ros.bank.enroll import BankFile, class_counts
 from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.views import simulate_views
 from point_gn_ros.node.enroll_engine import EnrollEngine

@@ -388,11 +388,11 @@ def ridge_bank(tiny_bank: Path, tmp_path_factory: pytest.TempPathFactory) -> Pat
     """The tiny bank with a kernel ridge term (bank/ridge.py) on its rows, fixed knobs."""
     from dataclasses import replace
 
-    from point_gn_ros.bank import ridge
+    from point_gn_ros.bank.discriminant import fit_ridge
     from point_gn_ros.bank.store import FeatureBank
     bank = FeatureBank.load(tiny_bank)
     head = bank.classifier_head
-    head = replace(head, ridge_coef=ridge.fit(bank.features, bank.labels, bank.num_classes,
+    head = replace(head, ridge_coef=fit_ridge(bank.features, bank.labels, bank.num_classes,
                                               1.0, 0.01),
                    ridge_gamma=1.0, ridge_lambda=0.01, ridge_weight=30.0)
     meta = {**bank.meta, 'head': {**bank.meta['head'], 'ridge': {
@@ -402,10 +402,10 @@ def ridge_bank(tiny_bank: Path, tmp_path_factory: pytest.TempPathFactory) -> Pat
     return replace(bank, head=head, meta=meta).save(path, dtype='float32')
 
 
-def test_enrollment_into_a_ridge_bank_is_refitted_in_the_background(
+def test_enrollment_into_a_ridge_bank_publishes_the_term_fitted(
         harness: Harness, ridge_bank: Path, tmp_path: Path, sofa) -> None:  # noqa: ANN001
-    """The new class answers at once; the full ridge refit arrives as the next version."""
-    from point_gn_ros.bank import ridge
+    """Every version the node publishes has its ridge term fitted; the saved file too."""
+    from point_gn_ros.bank.discriminant import fit_ridge
     from point_gn_ros.bank.store import FeatureBank
 
     saved = tmp_path / 'ridge_taught.npz'
@@ -419,33 +419,25 @@ def test_enrollment_into_a_ridge_bank_is_refitted_in_the_background(
             c.pub_cloud.publish(cloud_msg(cloud, 'base_link', stamp(3, i)))
             harness.spin_for(0.05)
         names = c.wait_classes(lambda names: NEW in names)
-        # The examples make a version answered without the term (one, or more if they came
-        # in several enrollments); the term refitted in full makes the next one.
         assert c.h.spin_until(lambda: int(latest_diagnostics(c.diag, ': enrollment')
-                                          .get('bank_version', 0)) >= 2, TIMEOUT_S), node.log()
+                                          .get('bank_version', 0)) >= 1, TIMEOUT_S), node.log()
         assert all(int(a[0][0]) == names.index(NEW) for a in c.classify(sofa[1], 600))
-        deadline = time.monotonic() + TIMEOUT_S
-        while True:
-            ok, text = c.call('save_bank')
-            assert ok, text
-            if not ridge.is_pending(FeatureBank.load(saved).meta) or \
-                    time.monotonic() > deadline:
-                break
-            harness.spin_for(0.5)
+        ok, text = c.call('save_bank')
+        assert ok, text
     finally:
         if c is not None:
             c.close()
         assert node.stop() == 0, node.log()
     assert 'Traceback' not in node.log()
     back = FeatureBank.load(saved)
-    assert back.head.has_ridge and not ridge.is_pending(back.meta)
+    assert back.head.has_ridge and 'pending' not in back.meta['head']['ridge']
     assert back.head.ridge_coef.shape == (len(back), 7)
     # The node refits on its torch_threads (1); MKL's Cholesky rounds differently on two
     # threads on Intel CPUs (not on AMD ones), so the reference fit runs on one as well.
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        expected = ridge.fit(back.features, back.labels, 7, 1.0, 0.01)
+        expected = fit_ridge(back.features, back.labels, 7, 1.0, 0.01)
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(back.head.ridge_coef, expected)

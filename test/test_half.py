@@ -11,10 +11,10 @@ import torch
 from point_gn_ros.bank.builder import fit_selected
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, add_examples
-from point_gn_ros.bank.half import decode, encode, round_matrix
+from point_gn_ros.bank.store import decode, encode, round_matrix
 from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.bank.selection import select
-from point_gn_ros.bank.store import HALF_VERSION, FeatureBank
+from point_gn_ros.bank.store import FeatureBank, HALF_VERSION
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.errors import BankError
 

@@ -15,7 +15,7 @@ from conftest import KERNEL_BUILDS, kernel_build
 import numpy as np
 import pytest
 
-from point_gn_ros.bank.index_basis import pack_codes, unpack_codes
+from point_gn_ros.bank.index import pack_codes, unpack_codes
 from point_gn_ros.core import kernels
 
 # widths: one 16-byte chunk, a 48-byte one, 2 full chunks, 64 + 64 + 16 (the scan

@@ -157,7 +157,7 @@ def test_node_enrollment_engine_keeps_the_recognizers_measured_sizes(tmp_path: P
     from point_gn_ros.bank.enroll import BankFile
     from point_gn_ros.bank.live import LiveBank
     from point_gn_ros.bank.store import FeatureBank
-    from point_gn_ros.bank.transform import FeatureTransform
+    from point_gn_ros.bank.model import FeatureTransform
     from point_gn_ros.core.config import EncoderConfig
     from point_gn_ros.core.size import size_descriptors
     from point_gn_ros.node.enroll_engine import EnrollEngine

@@ -12,7 +12,7 @@ import torch
 from point_gn_ros.bank.builder import fit_selected
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, add_examples, remove_class
-from point_gn_ros.bank.lda import lda_from_means, lda_noise_trace
+from point_gn_ros.bank.discriminant import lda_from_means, lda_noise_trace
 from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.bank.selection import select
 from point_gn_ros.bank.store import FeatureBank

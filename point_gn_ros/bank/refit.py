@@ -2,7 +2,7 @@
 
 `refit()` is the single place that knows which fitted parts of a bank depend on its entries:
 gamma and the discriminant head's knobs (kept, or re-chosen by stratified k-fold CV on the
-bank), the head itself (bank/head.py, refitted in closed form) and the open-set thresholds
+bank), the head itself (bank/discriminant.py, refitted in closed form) and the open-set thresholds
 (recalibrated on held-out folds, or kept). The feature transform is always kept: refitting it
 would need the raw encoder features of the whole bank, which the file does not hold.
 """
@@ -11,21 +11,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 import copy
-import threading
 from typing import Any, Literal, get_args
 
 import numpy as np
 import torch
 
-from point_gn_ros.bank import ridge
-from point_gn_ros.bank.debias import check_policy as check_debias, taught_shares
-from point_gn_ros.bank.half import rounded_head
-from point_gn_ros.bank.head import Head, fit_head
-# ScatterStats re-exported: bank_file.py and the scripts import it from here.
-from point_gn_ros.bank.lda import CovarianceFit, ScatterStats, lda_from_means  # noqa: F401
+from point_gn_ros.bank.discriminant import (CovarianceFit, ScatterStats, check_policy as
+                                            check_debias, fit_head, fit_ridge, lda_from_means,
+                                            taught_shares, vote_to_z)
+from point_gn_ros.bank.model import Head
 from point_gn_ros.bank.selection import (DEFAULT_GAMMAS, calibrate_novelty, calibrate_unknown,
                                          select)
-from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.store import FeatureBank, rounded_head, stored_rows
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.errors import PointGNError
 
@@ -82,10 +79,6 @@ class RefitPolicy:
     lda_prior: LdaPrior = 'entries'
     lda_debias: float = 0.0
     lda_steal_budget: float = 0.0
-    # A section with a kernel ridge term (bank/ridge.py) whose rows changed: 'off' serves the
-    # head without the term at once (its own CV temperature) and marks the full refit pending
-    # (bank/live.py runs it in the background); 'full' refits it here (seconds: offline use).
-    ridge: Literal['off', 'full'] = 'off'
 
     def __post_init__(self) -> None:
         check_debias(self.lda_debias, self.lda_steal_budget)
@@ -97,8 +90,6 @@ class RefitPolicy:
         if self.calibration not in ('keep', 'recalibrate', 'auto'):
             raise ValueError(f'calibration policy must be keep, recalibrate or auto, got '
                              f'{self.calibration!r}')
-        if self.ridge not in ('off', 'full'):
-            raise ValueError(f'ridge policy must be off or full, got {self.ridge!r}')
         if self.min_examples < 1 or self.folds < 2:
             raise ValueError('min_examples must be >= 1 and folds >= 2')
 
@@ -179,9 +170,9 @@ def active_view(bank: FeatureBank, min_examples: int) -> FeatureBank:
         vkeep = ok[bank.views.labels]
         views = replace(bank.views, features=bank.views.features[vkeep],
                         labels=bank.views.labels[vkeep],
-                        head=ridge.head_subset(bank.views.head, vkeep))
+                        head=_head_subset(bank.views.head, vkeep))
     return replace(bank, features=bank.features[keep], labels=bank.labels[keep], views=views,
-                   head=ridge.head_subset(bank.head, keep))
+                   head=_head_subset(bank.head, keep))
 
 
 def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
@@ -266,10 +257,10 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
         z_all = vote_to_z(bank.features, head)
         features = z_all if new_head is None else new_head.vote_space(z_all)
     ridge_how = None
-    if head is not None and head.ridge_coef is not None:   # bank/ridge.py: knobs kept
-        new_head, features, ridge_how = ridge.refit(
+    if head is not None and head.ridge_coef is not None:   # the ridge's knobs are kept
+        new_head, features, ridge_how = _refit_ridge(
             head, new_head or Head(gamma), features, bank.labels, bank.num_classes, rewhiten,
-            str(meta.get('stored_dtype', 'float32')), policy.ridge, meta)
+            str(meta.get('stored_dtype', 'float32')))
     if new_head is not None and new_head.is_plain_vote and new_head.temperature == 1.0:
         new_head = None
     cal_reason = _recalibrate(meta, bank, view, compact, present, gamma, new_head, sel, policy,
@@ -329,36 +320,37 @@ def _prior_shift(prior: LdaPrior, n: np.ndarray, taught: np.ndarray) -> torch.Te
     return torch.where(built, 0.0, (typical / n).log()).float()
 
 
-def vote_to_z(u: torch.Tensor, head: Head | None) -> torch.Tensor:
-    """Bank rows in the vote's space (N, d) -> the transformed rows z (N, d) they came from.
+def _head_subset(head: Head | None, keep: torch.Tensor | np.ndarray) -> Head | None:
+    """The head with the ridge coefficients of the kept rows (bool (N,)) only.
 
-    u = normalize(z W) with W the head's (invertible, symmetric) whitening, z unit rows, so
-    z = normalize(u W^-1) (exact up to the stored precision). Without whitening u is z.
+    Heads without a ridge: as they are.
     """
-    if head is None or head.whiten is None:
-        return u
-    return torch.nn.functional.normalize(u.double() @ _unwhitening(head.whiten), dim=1).float()
+    if head is None or head.ridge_coef is None:
+        return head
+    return replace(head, ridge_coef=head.ridge_coef[
+        torch.as_tensor(keep, dtype=torch.bool)[:len(head.ridge_coef)]])
 
 
-# (whitening tensor, its float64 inverse) by id: every enrollment maps its new rows back to
-# z with the section's unchanged whitening; inverting it each time cost 20 ms per section.
-_INVERSES: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
-_MAX_INVERSES = 8
-_INVERSES_LOCK = threading.Lock()
+def _refit_ridge(head: Head, new_head: Head, rows: torch.Tensor, labels: torch.Tensor,
+                 num_classes: int, moved: bool, dtype: str) -> tuple[Head, torch.Tensor, str]:
+    """The kernel ridge part of `refit`, the other knobs of new_head already set.
 
-
-def _unwhitening(whiten: torch.Tensor) -> torch.Tensor:
-    """W^-1 (d, d) float64 of a whitening W, cached (heads are immutable once fitted)."""
-    with _INVERSES_LOCK:
-        hit = _INVERSES.get(id(whiten))
-    if hit is not None and hit[0] is whiten:
-        return hit[1]
-    inv = torch.linalg.inv(whiten.double())
-    with _INVERSES_LOCK:
-        if len(_INVERSES) >= _MAX_INVERSES:
-            _INVERSES.pop(next(iter(_INVERSES)))
-        _INVERSES[id(whiten)] = (whiten, inv)   # holding whiten keeps its id unique
-    return inv
+    head: the section's head before; its coefficients are kept only if rows (N, d) are still
+    the rows they were fitted on (same count, no class removed or added), else refitted in
+    full on the rows as the file stores them (moved: rows were re-whitened; appended rows
+    are stored values already). -> (new_head, those rows, what was done). A published bank
+    version always has its ridge term fitted.
+    """
+    same = not moved and head.ridge_coef.shape[0] == len(rows) and \
+        head.ridge_coef.shape[1] == num_classes
+    knobs = dict(ridge_gamma=head.ridge_gamma, ridge_lambda=head.ridge_lambda,
+                 ridge_weight=head.ridge_weight)
+    if same:
+        return replace(new_head, ridge_coef=head.ridge_coef, **knobs), rows, 'kept'
+    if moved:
+        rows = stored_rows(rows, dtype)
+    coef = fit_ridge(rows, labels, num_classes, head.ridge_gamma, head.ridge_lambda)
+    return replace(new_head, ridge_coef=coef, **knobs), rows, 'refitted in full'
 
 
 def _expand_lda(head: Head, present: np.ndarray, num_classes: int) -> Head:

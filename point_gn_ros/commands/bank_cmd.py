@@ -178,7 +178,7 @@ def _build_sections(ds, cfg, args: argparse.Namespace, dims: list,  # noqa: ANN0
     import torch
 
     from point_gn_ros.bank.builder import build_bank, encode_dataset
-    from point_gn_ros.bank.sections import RowsDataset, combine_sections
+    from point_gn_ros.bank.builder import RowsDataset, combine_sections
     from point_gn_ros.recognizer import make_encoder
 
     feats = encode_dataset(ds, make_encoder(cfg, args.device), cache_dir=cache)
@@ -326,6 +326,10 @@ def _info(args: argparse.Namespace) -> int:
         print(f'  object test of taught classes (bank/objects.py): {len(o.means)} built '
               f'objects, rank {o.rank}, shrinkage {o.alpha:g}, slope {o.lam:g}, offset '
               f'{o.theta:g}')
+    from point_gn_ros.bank.classifier import Classifier
+    path = Classifier(bank).path
+    print(f'  query path (CPU): {path["head"]} head, lone queries {path["lone"]}, '
+          f'{path["search"]} search')
     prov = bank.meta.get('provenance', {})
     print(f'  created {prov.get("created", "?")}; classes: {", ".join(bank.class_names)}')
     return 0

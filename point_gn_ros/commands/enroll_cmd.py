@@ -111,13 +111,12 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _policy(args: argparse.Namespace):
-    from point_gn_ros.bank.enroll import RefitPolicy
+    from point_gn_ros.bank.refit import RefitPolicy
     return RefitPolicy(gamma=args.gamma, calibration=args.calibration,
                        min_examples=args.min_examples, folds=args.folds,
                        lda_prior=args.lda_prior,
                        lda_debias=getattr(args, 'lda_debias', 0.0),
-                       lda_steal_budget=getattr(args, 'steal_budget', 0.0),
-                       ridge='full')   # offline: a kernel ridge term is refitted in full
+                       lda_steal_budget=getattr(args, 'steal_budget', 0.0))
 
 
 def _in_range(text: str, top: float) -> float:
@@ -131,12 +130,12 @@ def _in_range(text: str, top: float) -> float:
 
 
 def _share(text: str) -> float:
-    from point_gn_ros.bank.debias import MAX_SHARE
+    from point_gn_ros.bank.discriminant import MAX_SHARE
     return _in_range(text, MAX_SHARE)
 
 
 def _budget(text: str) -> float:
-    from point_gn_ros.bank.debias import MAX_BUDGET
+    from point_gn_ros.bank.discriminant import MAX_BUDGET
     return _in_range(text, MAX_BUDGET)
 
 

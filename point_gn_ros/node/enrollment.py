@@ -58,9 +58,10 @@ from rclpy.task import Future as RclpyFuture
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from point_gn_ros.bank.debias import MAX_BUDGET, MAX_SHARE
-from point_gn_ros.bank.bank_file import remove_stale_temps
-from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
+from point_gn_ros.bank.discriminant import MAX_BUDGET, MAX_SHARE
+from point_gn_ros.bank.enroll import remove_stale_temps
+from point_gn_ros.bank.enroll import BankFile, EnrollResult, predictable
+from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.bank.refit import LDA_PRIORS
 from point_gn_ros.core.augment import AUGMENTS
@@ -214,8 +215,7 @@ class Enrollment(ManagedEntity):
             # search index's basis is reused, not fitted again (~0.4 s of start-up CPU).
             self.live = LiveBank(BankFile.of_loaded(node.recognizer.bank),
                                  lambda bank: self._make_model(bank, node.recognizer), policy,
-                                 derive=self._make_model,
-                                 on_refit=lambda snap: node.replace_recognizer(snap.model))
+                                 derive=self._make_model)
             node.replace_recognizer(self.live.current().model)
         except (PointGNError, ValueError) as exc:
             log.error(f'enrollment: {exc}')
@@ -333,8 +333,6 @@ class Enrollment(ManagedEntity):
 
     def stop(self) -> None:
         """Stop enrolling now (node shutdown): pending work dropped, nothing published after."""
-        if self.live is not None:
-            self.live.on_refit = None
         if self.engine is not None:
             if not self.node.context.ok():     # /rosout is gone: a console-only logger
                 self.engine.set_log(rclpy.logging.get_logger(

@@ -12,6 +12,7 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
+from point_gn_ros.bank.classifier import unknown_rules
 from point_gn_ros.errors import PointGNError
 from point_gn_ros.node.frames import UP_AXES
 
@@ -305,17 +306,17 @@ def settings_from_values(values: dict[str, Any],
 
 
 def resolve_unknown_threshold(bank: Any, value: float) -> float | None:
-    """The effective open-set threshold: None when 0 (off); the bank's calibrated one if < 0.
+    """The probability threshold the Classifier applies for `value`.
 
-    Raises NodeConfigError when value < 0 and the bank holds no calibration.
+    As bank/classifier.py `unknown_rules` resolves it: None when off, or when the bank's
+    calibration thresholds novelty.
+
+    Raises NodeConfigError where the Classifier would refuse value (< 0, no calibration).
     """
-    if value >= 0:
-        return value or None
-    calib = bank.meta.get('unknown_calibration')
-    if not calib:
-        raise NodeConfigError(f'unknown_threshold={value:g} asks for the calibrated threshold, '
-                              f'but {bank.path} holds no calibration')
-    return float(calib['threshold'])
+    try:
+        return unknown_rules(bank, value).probability
+    except ValueError as exc:
+        raise NodeConfigError(str(exc)) from None
 
 
 def descriptors(allow_changes: bool = False) -> dict[str, tuple[Any, ParameterDescriptor]]:
