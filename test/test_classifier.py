@@ -101,3 +101,38 @@ def test_class_scores_rows_sum_to_one_with_missing_class() -> None:
     labels = torch.zeros(10, dtype=torch.int64)  # class 1 has no entries
     s = class_scores(feats, feats, labels, 2, 10.0)
     assert torch.allclose(s[:, 0], torch.ones(10)) and (s[:, 1] == 0).all()
+
+
+def test_a_novelty_calibrated_bank_thresholds_novelty_everywhere() -> None:
+    """unknown_threshold < 0 on a bank whose calibration measures novelty: the Classifier
+    applies it as a novelty threshold, not a probability one, wherever it is resolved."""
+    from point_gn_ros.bank.classifier import unknown_rules
+    pytest.importorskip('rcl_interfaces')
+    from point_gn_ros.node.params import NodeConfigError, resolve_unknown_threshold
+
+    bank = _bank()
+    q = torch.randn(24, bank.features.shape[1])
+    novelty = Classifier(bank).classify(q).novelty
+    cut = float(np.median(novelty))
+    bank.meta['unknown_calibration'] = {'threshold': cut, 'measure': 'novelty',
+                                        'false_reject_rate': 0.05}
+    rules = unknown_rules(bank, -1)
+    assert rules.probability is None and rules.novelty == cut
+    clf = Classifier(bank, unknown_threshold=-1)
+    res = clf.classify(q)
+    assert ((res.labels == UNKNOWN) == (res.novelty > cut)).all()
+    assert 0 < (res.labels == UNKNOWN).sum() < len(q)
+    # the node's check and the live swap resolve it the same way (no probability threshold)
+    assert resolve_unknown_threshold(bank, -1) is None
+    other = Classifier(bank)
+    other.set_unknown_threshold(-1)
+    assert other.rules == clf.rules
+    assert np.array_equal(other.classify(q).labels, res.labels)
+    other.set_unknown_threshold(0.5)
+    assert other.rules.probability == 0.5 and other.rules.novelty is None
+    bank.meta.pop('unknown_calibration')
+    with pytest.raises(ValueError, match='calibrat'):
+        other.set_unknown_threshold(-1)
+    assert other.rules.probability == 0.5          # unchanged by the refused value
+    with pytest.raises(NodeConfigError, match='calibrat'):
+        resolve_unknown_threshold(bank, -1)
