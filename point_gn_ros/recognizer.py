@@ -113,7 +113,7 @@ class Recognizer:
         search: the classifier's bank search, 'auto', 'exact' or 'indexed'
         (bank/classifier.py; 'auto' indexes large banks once, here); previous: the
         recognizer of the bank version this one follows (its index is extended, not rebuilt);
-        object_test: apply the bank's object test to taught classes (bank/objects.py);
+        object_test: apply the bank's object test to taught classes (bank/model.py);
         metric_size: the clouds are in metres, z up: their size (core/size.py) is evidence
         (bank/taught.py); False for inputs without metric meaning (unit-sphere data);
         fit_threshold: shape-and-size fit below which a cloud is unknown (None: no such rule);

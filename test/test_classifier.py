@@ -104,8 +104,11 @@ def test_class_scores_rows_sum_to_one_with_missing_class() -> None:
 
 
 def test_a_novelty_calibrated_bank_thresholds_novelty_everywhere() -> None:
-    """unknown_threshold < 0 on a bank whose calibration measures novelty: the Classifier
-    applies it as a novelty threshold, not a probability one, wherever it is resolved."""
+    """unknown_threshold < 0 on a bank whose calibration measures novelty.
+
+    The Classifier applies it as a novelty threshold, not a probability one, wherever it is
+    resolved.
+    """
     from point_gn_ros.bank.classifier import unknown_rules
     pytest.importorskip('rcl_interfaces')
     from point_gn_ros.node.params import NodeConfigError, resolve_unknown_threshold

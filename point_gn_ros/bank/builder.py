@@ -65,9 +65,9 @@ def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel:
 
     -> transform, head, bank rows in the vote's space (N, d) float32. With a kernel ridge
     term (sel.ridge_weight > 0) the rows come back as the file will store them in
-    `stored_dtype` (int4 rounding would otherwise undo the ridge fit: bank/ridge.py).
+    `stored_dtype` (int4 rounding would otherwise undo the ridge fit: bank/discriminant.py).
     matrix_dtype: the projection, whitening and wide-LDA precision are rounded as a file
-    of that matrix dtype stores them (bank/half.py) before anything is computed with them.
+    of that matrix dtype stores them (bank/store.py) before anything is computed with them.
     """
     tf = rounded_transform(FeatureTransform.fit(feats, sel.standardize, sel.dims), matrix_dtype)
     z = tf(feats)
@@ -106,11 +106,11 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
     stay in one CV fold. alphas=() gives the plain kernel vote (format-1 behaviour).
     cv_subset: (M,) int64 entry indices the CV runs on (default all; CV cost grows with the
     square of the bank): the knobs chosen there are then fitted on every entry.
-    wide_lda: CV also weighs an LDA on every standardised encoder dim (bank/head.py).
-    ridge: CV also weighs a kernel ridge term (bank/ridge.py), fitted on the rows as a file
+    wide_lda: CV also weighs an LDA on every standardised encoder dim (bank/model.py).
+    ridge: CV also weighs a kernel ridge term (bank/discriminant.py), fitted on the rows as a file
     of `stored_dtype` holds them (save the bank with that dtype).
     matrix_dtype: 'float16' stores the large fitted matrices as float16 (format 5,
-    bank/half.py): about half the file of a wide-LDA or PCA bank.
+    bank/store.py): about half the file of a wide-LDA or PCA bank.
     """
     encoder = encoder or make_encoder(cfg, device)
     if feats is None:
@@ -163,13 +163,13 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
 #
 # One head fitted on complete objects and their scans together serves neither well: its
 # knobs, PCA and within-class covariance are dominated by the scans (4 per object), and
-# complete objects lose 2 points (benchmarks/log, "Single-view scans"). A two-section bank
+# complete objects lose about 2 points. A two-section bank
 # keeps the complete objects as the main section (exactly the complete-object bank: own PCA
 # width, whitening, LDA, gamma and temperature, all chosen by CV on complete objects) and the
 # scans as a second section (own knobs, chosen by CV grouped by source object); a gate
-# (bank/gate.py) says how likely a query is a scan and mixes the two sections'
+# (bank/model.py `Gate`) says how likely a query is a scan and mixes the two sections'
 # probabilities (bank/classifier.py). With the scans' source objects known, the bank also
-# gets the object test of taught classes (bank/objects.py), fitted on the scan section.
+# gets the object test of taught classes (bank/model.py), fitted on the scan section.
 
 class RowsDataset(Dataset):
     """The rows `rows` (bool mask or indices) of a dataset, as a dataset."""

@@ -22,7 +22,7 @@ from point_gn_ros.bank.model import (GATE_DIMS, GATE_SHRINKAGE, OBJECT_ALPHA, OB
                                      ObjectTest)
 
 # ---- shrunk pooled covariance and LDA
-# The LDA's closed-form algebra under a shared, shrunk covariance (bank/head.py's LDA).
+# The LDA's closed-form algebra under a shared, shrunk covariance (bank/model.py's LDA).
 #
 # CovarianceFit: class means and the pooled within-class covariance of rows, its whitening,
 # LDA and precision; ScatterStats: running sufficient statistics of the same, so an enrollment
@@ -334,7 +334,7 @@ def best_temperature(fused: np.ndarray | torch.Tensor, labels: np.ndarray) -> tu
 # The LDA bias an enrollment gives the classes it creates (a wide LDA's mean-noise correction).
 #
 # A class taught from n examples has its mean off by noise of covariance Sigma / n, which costs
-# it t / (2 n) logits on average (t = tr(Sigma_a^-1 Sigma), `Head.lda_trace`, bank/lda.py
+# it t / (2 n) logits on average (t = tr(Sigma_a^-1 Sigma), `Head.lda_trace`, bank/discriminant.py
 # `lda_noise_trace`). An enrollment gives back a share f of it: bias_c += f t / (2 n_c).
 # - Uniform: every taught class gets f = policy.lda_debias.
 # - Steal budget rho (policy.lda_steal_budget > 0): each taught class gets the largest
@@ -442,20 +442,13 @@ def check_policy(share: float, budget: float) -> None:
 #                                                   Y the one-hot labels
 #   ridge_c   = sum_i k(q, u_i) A_ic               (B, C) for queries q
 #
-# The head adds ridge_weight x ridge to its fused scores (bank/head.py). g is small (0.25-2,
-# chosen by CV) where the vote's gamma is 20-160: the regression needs a wide kernel to have
-# anything to fit. A is fitted on the rows exactly as the bank file stores them (int4 rounding
-# moves K far enough to undo the fit: a ridge fitted on float rows and queried against int4
-# rows lost 2-15 points by CV), so builder and enrollment pass the stored rows.
-#
-# An enrollment cannot keep A cheaply: solving only for the new rows with the old ones held
-# fixed (the m x m block step) cost held-out complete objects 1.0-1.3 points and, with the
-# default's wide kernel, pulled others to the enrolled classes, while the full refit cost
-# nothing (benchmarks/log); the full refit takes seconds on 10k entries. So an enrollment
-# (`RefitPolicy.ridge`) either refits A in full ('full': `point_gn bank add`), or serves the
-# head without the term at once, with that head's own CV temperature, and marks the full refit
-# pending ('off': the node; bank/live.py runs `refit_pending` in the background and publishes
-# the result as the next version). A removal does the same.
+# The head adds ridge_weight x ridge to its fused scores (bank/vote.py). g is small (chosen
+# by CV) where the vote's gamma is large: the regression needs a wide kernel to have anything
+# to fit. Invariants: A is fitted on the rows exactly as the bank file stores them (int4
+# rounding moves K far enough to undo a fit on float rows), so builder and enrollment pass
+# the stored rows; and every published bank version has A fitted on its own rows (an
+# enrollment or removal refits it in full, bank/refit.py; docs/METHOD.md, "The kernel ridge
+# term").
 
 # Largest bank a ridge is fitted for: its (N, N) float32 kernel is 1 GB at 16,000 entries.
 RIDGE_MAX_ENTRIES = 16000

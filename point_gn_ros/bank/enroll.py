@@ -261,7 +261,7 @@ def _matches(stored: np.ndarray, features: torch.Tensor) -> bool:
 _MAX_LISTED = 20
 # The metadata keeps the last MAX_HISTORY entries of `enrollments` (each at most ~800 bytes
 # with a 256-character class name and a MAX_SOURCE_CHARS source): ~0.4 MB at most, within
-# the 1 MB metadata limit of a loadable bank (bank/validate.py) beside the class names.
+# the 1 MB metadata limit of a loadable bank (bank/store.py) beside the class names.
 MAX_HISTORY = 500
 MAX_SOURCE_CHARS = 200
 
@@ -385,7 +385,7 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
     cid = names.index(class_name)
     # Canonical frames only: the k frames of one example are alike by construction.
     dups, n_dups = near_duplicates(new[::k], bank, cid, policy.duplicate_cosine)
-    feats = append_rows(bank.features, new)       # bank/rows.py: no copy of the bank rows
+    feats = append_rows(bank.features, new)       # bank/store.py: no copy of the bank rows
     labels = torch.cat([bank.labels, torch.full((len(new),), cid, dtype=torch.int64)])
     extra = {} if k == 1 else {'examples': len(new) // k, 'augment': augment}
     meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups,

@@ -50,13 +50,11 @@ from point_gn_ros.core.encoder import spare_cpu
 # fresh build's.
 
 # Default coarse width: the fewest coordinates (a multiple of 32) holding this share of the
-# bank's energy: 128 of 512 for issue 13's synthetic bank, 192 of 224 for the whitened
-# sensor bank, 512 of 640 for the shipped (whitened) one (benchmarks/log "Large banks").
+# bank's energy (512 of 640 for the shipped, whitened, bank).
 COARSE_ENERGY = 0.9
 # Bits a coarse code: 4 (codes in [-7, 7], half the bytes of 8) or 8 ([-127, 127]). On the
-# shipped scan section (288 of 320 dims) 4 bits kept 8 bits' fidelity against the exact
-# search (0 of 9,843 train and 0 of 4,936 test labels differ), and its coarse pass after
-# idle time takes 1.0-1.2 ms instead of 1.7-2.2 (benchmarks/log, "Third session of 2026-12-03").
+# shipped scan section 4 bits keep 8 bits' labels against the exact search
+# (benchmarks/search_agreement.py) at about half the coarse pass's time.
 COARSE_BITS = 4
 _CODE_TOP = {4: 7, 8: 127}      # bits -> the largest |code|
 # Rows used to find the principal axes (a sample: the rotation only steers the coarse
@@ -101,11 +99,10 @@ class IndexBasis:
         order = torch.arange(r)
         rotation = evecs[:, order].float().contiguous().numpy()          # (d, r)
         # share of the bank's squared norms on the coarse coordinates: the closer to 1,
-        # the better the coarse pass ranks (issue 13's 512-d bank, 128 coords: 0.93)
+        # the better the coarse pass ranks
         energy = float(evals[order].sum() / evals.sum().clamp_min(1e-30))
         z = _project(feats, rotation, lib)
-        # The largest |value| by blocks of rows: a whole-bank np.abs(z) was a second (N, r)
-        # float32 temporary at the node's start (90 MB on the shipped bank).
+        # The largest |value| by blocks of rows: no second (N, r) float32 temporary.
         top = np.zeros(r, np.float32)
         for i in range(0, n, _BLOCK_ROWS):
             np.maximum(top, np.abs(z[i:i + _BLOCK_ROWS]).max(axis=0), out=top)

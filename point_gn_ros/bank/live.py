@@ -75,7 +75,7 @@ class LiveBank(Generic[Model]):
         self._make_model, self._derive = make_model, derive
         self._lock = threading.Lock()
         # One pass over the bank now, so that every enrollment's LDA refit is cheap, and
-        # its rows moved to where enrollments append without copying them (bank/rows.py).
+        # its rows moved to where enrollments append without copying them (bank/store.py).
         self._snap = self._snapshot(_with_room(file.with_stats()))
 
     def current(self) -> Snapshot[Model]:

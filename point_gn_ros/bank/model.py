@@ -74,7 +74,7 @@ class FeatureTransform:
     def standardized(self, feats: torch.Tensor) -> torch.Tensor:
         """feats: (B, D) float32 -> (B, D) float32 unit rows, standardised, not projected.
 
-        What a wide LDA reads (bank/head.py): every encoder dim, not only the PCA's.
+        What a wide LDA reads (bank/model.py): every encoder dim, not only the PCA's.
         """
         return torch.nn.functional.normalize(self._scaled(feats), dim=1, eps=1e-12)
 
@@ -110,7 +110,7 @@ class FeatureTransform:
 #   probability  softmax(fused / T)                          T: temperature by CV log-loss
 #   novelty      1 - max_i cos(u, u_i)                       in [0, 2]; 0 = a bank entry
 #
-# A kernel ridge term (bank/ridge.py, `ridge_coef`) adds ridge_weight x sum_i k(u, u_i) A_ic
+# A kernel ridge term (bank/discriminant.py, `ridge_coef`) adds ridge_weight x sum_i k(u, u_i) A_ic
 # to fused: per-entry coefficients A (N, C) fitted in closed form so the bank reproduces its
 # own labels under a wide kernel k; it needs every entry's cosine (the exact search).
 #
@@ -150,8 +150,8 @@ class Head:
     lda_wide: bool = False
     lda_precision: torch.Tensor | None = None
     lda_means: torch.Tensor | None = None
-    lda_trace: float = 0.0       # wide LDA: tr(Sigma_a^-1 Sigma), see bank/lda.py lda_noise_trace
-    ridge_coef: torch.Tensor | None = None   # (N, C): one row per bank entry (bank/ridge.py)
+    lda_trace: float = 0.0       # wide LDA: tr(Sigma_a^-1 Sigma) (lda_noise_trace)
+    ridge_coef: torch.Tensor | None = None   # (N, C): one row per bank entry
     ridge_gamma: float = 0.0
     ridge_lambda: float = 0.0
     ridge_weight: float = 0.0
@@ -171,7 +171,7 @@ class Head:
         return Head(self.gamma, mv(self.whiten), mv(self.lda_coef), mv(self.lda_bias),
                     self.fusion_weight, self.temperature, self.lda_wide,
                     mv(self.lda_precision), mv(self.lda_means), self.lda_trace,
-                    # float64 once here: the ridge sum runs in float64 (bank/ridge.py)
+                    # float64 once here: the ridge sum runs in float64 (bank/discriminant.py)
                     None if self.ridge_coef is None else self.ridge_coef.to(device, torch.float64),
                     self.ridge_gamma, self.ridge_lambda, self.ridge_weight)
 
@@ -194,7 +194,7 @@ class Head:
 # A sectioned bank (bank/store.py, `FeatureBank.views`) holds complete objects and single-view
 # scans as two sections, each with its own transform and head. A whole CAD-like object and
 # one side of it look different to the encoder, and one head fitted on both serves neither
-# well (benchmarks/log, "Two-section bank"). The gate is a closed-form two-class LDA (complete
+# well. The gate is a closed-form two-class LDA (complete
 # vs scan) on its own standardised, PCA-projected, L2-normalised features, with equal priors
 # (the mix of complete objects and scans a robot will send is not the bank's mix):
 #
@@ -229,9 +229,9 @@ class Gate:
 # ---- the object test of taught classes
 # Object-level test of taught classes: is a query nearer the taught object than a built one.
 #
-# A class taught from a few looks at ONE object (issue 12: "my toolbox") is a tight cluster;
+# A class taught from a few looks at ONE object ("my toolbox") is a tight cluster;
 # the discriminant head sees only its class mean and the shared covariance, so scans of other
-# objects of a similar category drift into it (the "scan drop" of benchmarks/log). The bank's
+# objects of a similar category drift into it. The bank's
 # build holds 8 single-view scans of every train object, so it knows how far scans of one
 # object scatter around their own mean, and where every built object's mean lies.
 #
@@ -248,7 +248,7 @@ class Gate:
 # the taught object has t_I well below 0 (boost); one of another object of a built class has
 # t_I > 0 (damped). Built classes' log-probabilities never move, so with no taught class the
 # probabilities are exactly the head's. r, alpha, lam and theta were chosen by nested CV on
-# the train split only (experiments/object_test_study.py, benchmarks/log).
+# the train split only (experiments/object_test_study.py).
 #
 # The built objects' class names are kept: an object of a class no longer in the bank, or
 # removed and re-taught, is not a "built object" any more and is left out of the minimum.

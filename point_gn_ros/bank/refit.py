@@ -64,10 +64,10 @@ class RefitPolicy:
     provenance, gets the mean share of a built class).
     lda_debias: share f of the mean-noise correction a wide LDA gives each enrolled class
     (one not in the build's provenance): its LDA bias += f tr(Sigma_a^-1 Sigma) / (2 n), n
-    its entries (bank/lda.py `lda_noise_trace`). 0 (default): none; built classes never.
+    its entries (bank/discriminant.py `lda_noise_trace`). 0 (default): none; built classes never.
     lda_steal_budget: rho > 0 makes lda_debias a cap: each enrolled class gets the largest
     share <= lda_debias whose predicted steal rate from the built classes is <= rho
-    (bank/debias.py). 0 (default): every enrolled class gets lda_debias.
+    (bank/discriminant.py). 0 (default): every enrolled class gets lda_debias.
     """
 
     gamma: GammaPolicy = 'auto'
@@ -183,7 +183,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
     (meta['refit'] records what was done):
     - gamma and the head's knobs (whitening / LDA shrinkage, fusion weight, temperature) are
       kept, or re-chosen by stratified k-fold CV on the bank (policy.gamma);
-    - the head (bank/head.py) is refitted in closed form on the bank's entries: with kept
+    - the head (bank/model.py) is refitted in closed form on the bank's entries: with kept
       knobs, the LDA class means, priors and pooled covariance (the vote's whitening is kept,
       so stored rows do not move); after CV, the whole head, and every row is re-whitened;
     - the open-set thresholds are recalibrated on held-out folds or kept (policy.calibration).
@@ -282,7 +282,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
 
 def enrolled_debias(head: Head, n: torch.Tensor, present: np.ndarray, bank: FeatureBank,
                     meta: dict, policy: RefitPolicy) -> tuple[Head, dict[str, float]]:
-    """A kept wide LDA with its enrolled classes' mean-noise correction (bank/debias.py).
+    """A kept wide LDA with its enrolled classes' mean-noise correction (bank/discriminant.py).
 
     head: over the present classes (class ids `present`), priors applied; n: their entries;
     enrolled = not in meta's build provenance -> (head, share per enrolled class by name).

@@ -25,7 +25,7 @@ DEFAULT_GAMMAS = tuple(5.0 * 2.0 ** k for k in range(11))          # 5 .. 5120
 DEFAULT_ALPHAS = (0.05, 0.1, 0.2, 0.4)                # whitening of the vote (a matmul each)
 DEFAULT_LDA_ALPHAS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4)  # LDA covariance (nearly free in CV)
 DEFAULT_WEIGHTS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
-# Kernel ridge term (bank/ridge.py), tried only when asked (`select(ridge=True)`): kernel
+# Kernel ridge term (bank/discriminant.py), tried only when asked (`select(ridge=True)`): kernel
 # widths, regularisers and weights in the fused score (ridge scores span ~1, log vote shares
 # tens of nats). Yaw-aligned ModelNet40 train, 5 folds: 89.9 % with it, 88.7 % without.
 RIDGE_GAMMAS = (0.25, 0.5, 1.0, 2.0)
@@ -241,8 +241,8 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
     weights=(0,) gives the plain kernel vote. With fewer than
     `folds` objects in some class the folds shrink to that count; with one, no CV is
     possible and the plain vote with FALLBACK_GAMMA is returned (`fallback` says why).
-    wide_lda: also try each LDA on the standardised rows before the PCA (bank/head.py);
-    ties keep the LDA on z. ridge: then also try a kernel ridge term (bank/ridge.py) in the
+    wide_lda: also try each LDA on the standardised rows before the PCA (bank/model.py);
+    ties keep the LDA on z. ridge: then also try a kernel ridge term (bank/discriminant.py) in the
     chosen vote space, kept only if it raises the held-out accuracy.
     """
     if ridge and len(labels) > RIDGE_MAX_ENTRIES:

@@ -8,23 +8,23 @@ Format version 2 (one `.npz`, read with allow_pickle=False, never unpickled):
   tf_mean       (D,) float32               feature transform fitted on the bank
   tf_scale      (D,) float32
   tf_projection (D, d) float32             optional PCA projection
-  head_whiten   (d, d) float32             optional: whitening of the vote (bank/head.py)
+  head_whiten   (d, d) float32             optional: whitening of the vote (bank/model.py)
   head_lda_coef (C, d) float32             optional: LDA logits = z coef^T + bias
   head_lda_bias (C,) float32
-  head_lda_precision (D(D+1)/2,) float32   with meta head.lda_wide: the wide LDA (bank/head.py)
+  head_lda_precision (D(D+1)/2,) float32   with meta head.lda_wide: the wide LDA (bank/model.py)
   head_lda_means     (C, D) float32        reads the standardised D-dim rows; coef is (C, D);
                                            precision Sigma_a^-1 as its upper triangle, row-major
   meta          (M,) uint8                 UTF-8 JSON: versions, encoder config, class
                                            names, gamma, head (fusion weight, temperature,
                                            shrinkage, CV figures), calibration, provenance
 
-Format version 4 (only a bank whose head has a kernel ridge term, bank/ridge.py) adds
+Format version 4 (only a bank whose head has a kernel ridge term, bank/discriminant.py) adds
   head_ridge_coef (N, C) float32           the ridge coefficients, one row per entry
   head_whiten_triu (d(d+1)/2,) float32     instead of head_whiten when that is exactly
                                            symmetric: its upper triangle, row-major
 and meta head.ridge (gamma, lambda, weight, CV table).
 
-Format version 5 (a section whose meta `matrix_dtype` is 'float16', bank/half.py) stores
+Format version 5 (a section whose meta `matrix_dtype` is 'float16', bank/store.py) stores
 tf_projection, head_whiten / head_whiten_triu and head_lda_precision as float16 values
 m / 2^e, e per array in meta `matrix_scale_log2`; otherwise as version 4.
 
@@ -36,10 +36,10 @@ Format version 3 adds, optionally (written as version 2 when it has neither):
   views_*       a second section, the single-view scans (`views_features`, `views_labels`,
                 `views_tf_*`, `views_head_*`, `views_meta`: the same arrays as above, with
                 the same class names and encoder), and
-  gate_*        the gate that mixes the two sections (bank/gate.py)
+  gate_*        the gate that mixes the two sections (bank/model.py)
 
 Format version 6 (a two-section bank with an object-level test of taught classes,
-bank/objects.py) adds `objects_projection`, `objects_means`, `objects_labels`,
+bank/model.py) adds `objects_projection`, `objects_means`, `objects_labels`,
 `objects_counts` and `objects_meta` (JSON); otherwise as version 5 (or 3-4).
 
 Version-1 banks (kernel vote only, no head) still load, as the plain vote, with a
@@ -176,7 +176,7 @@ def encode(a: np.ndarray) -> tuple[np.ndarray, int]:
         if np.array_equal(np.ldexp(half.astype(np.float32), e), a):
             return half, e
     raise ValueError('a matrix to be stored as float16 was not rounded when fitted '
-                     '(bank/half.py round_matrix)')
+                     '(bank/store.py round_matrix)')
 
 
 def decode(a: np.ndarray, e: int) -> np.ndarray:
@@ -298,7 +298,7 @@ def _check_header(f, info: zipfile.ZipInfo, fail) -> None:  # noqa: ANN001
 # FATAL line and `point_gn bank info` exit code 2, never a traceback or a silently useless bank:
 #
 # * metadata: at most META_MAX_BYTES bytes and META_MAX_DEPTH levels of nesting, checked on
-#   the raw bytes before JSON parsing (a deeply nested document used to raise RecursionError);
+#   the raw bytes before JSON parsing (a deeply nested document cannot raise RecursionError);
 # * encoder configuration: every field's type and range (ENCODER_RANGES; k <= num_points);
 # * class names: a non-empty list of distinct, non-empty strings without line breaks (the
 #   ``~/class_names`` topic is one name per line);
@@ -749,7 +749,7 @@ def objects_from_arrays(a: dict[str, np.ndarray], feature_dim: int) -> ObjectTes
 
 
 def stored_rows(rows: torch.Tensor, dtype: str) -> torch.Tensor:
-    """Unit rows (N, d) as a bank file of `dtype` gives them back (bank/quant.py, load)."""
+    """Unit rows (N, d) as a bank file of `dtype` gives them back (bank/store.py, load)."""
     return torch.nn.functional.normalize(
         torch.from_numpy(quantized(rows, dtype).astype(np.float32)), dim=1)
 
@@ -759,13 +759,13 @@ FORMAT_VERSION = 3
 # Written as version 2 when a bank has no views section and no int8/int4 features (older
 # readers).
 PLAIN_VERSION = 2
-# Written when a section's head has a kernel ridge term (bank/ridge.py): older readers would
+# Written when a section's head has a kernel ridge term (bank/discriminant.py): older readers would
 # drop the term silently, so they refuse the file instead.
 RIDGE_VERSION = 4
-# Written when a section stores its large matrices as scaled float16 (bank/half.py): older
+# Written when a section stores its large matrices as scaled float16 (bank/store.py): older
 # readers would take the scaled values as they are.
 HALF_VERSION = 5
-# Written when a two-section bank holds an object test (bank/objects.py): older readers would
+# Written when a two-section bank holds an object test (bank/model.py): older readers would
 # drop it silently (taught classes answered by the head alone), so they refuse the file.
 OBJECTS_VERSION = 6
 SECTIONED_VERSIONS = (FORMAT_VERSION, RIDGE_VERSION, HALF_VERSION, OBJECTS_VERSION)
@@ -1009,7 +1009,7 @@ class FeatureBank:
         def bad(problem: str) -> BankError:
             return BankError(f'{path}: {section}{problem}')
 
-        check_bank_arrays(path, a, section)   # limits and ranges first (bank/validate.py)
+        check_bank_arrays(path, a, section)   # limits and ranges first (bank/store.py)
         try:
             meta = json.loads(a['meta'].tobytes().decode())
             if not isinstance(meta, dict):
@@ -1081,7 +1081,7 @@ class FeatureBank:
         tf = FeatureTransform(torch.from_numpy(mean.astype(np.float32)),
                               torch.from_numpy(scale.astype(np.float32)),
                               None if proj is None else torch.from_numpy(proj.astype(np.float32)))
-        # F.normalize's arithmetic in place, in rows with room for enrollments (bank/rows.py),
+        # F.normalize's arithmetic in place, in rows with room for enrollments (bank/store.py),
         # converted by copy_: a large bank's rows are not held twice at load, nor later.
         features = empty_rows(*feats.shape)
         features.copy_(torch.from_numpy(feats))

@@ -184,7 +184,7 @@ class ExactSearch:
                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """`log_votes`, and the kernel ridge scores from the same cosines.
 
-        coef: (N, C) ridge coefficients (bank/ridge.py) -> third output (B, C); None: None.
+        coef: (N, C) ridge coefficients (bank/discriminant.py) -> third output (B, C); None: None.
         """
         step = max(1, MAX_BLOCK // max(1, self.bank_u.shape[0]))
         logv, best, ridge = [], [], []
@@ -201,7 +201,7 @@ def _kernel_rows(bank_u: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None] |
     """What the compiled scan reads for bank_u: (int8 codes, norms) or (float32 rows, None).
 
     Codes when every row is exactly normalize(codes) for int8 codes (a bank stored as int8
-    or int4, bank/quant.py); float32 rows otherwise (no copy when bank_u already is such
+    or int4, bank/store.py); float32 rows otherwise (no copy when bank_u already is such
     rows). None off the CPU, without kernels, or for an empty bank.
     """
     if bank_u.device.type != 'cpu' or bank_u.ndim != 2 or bank_u.shape[0] == 0:
@@ -216,7 +216,7 @@ def _kernel_rows(bank_u: torch.Tensor) -> tuple[np.ndarray, np.ndarray | None] |
 def _stored_codes(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(N, d) int8 codes and (N,) float32 norms with rows == normalize(codes), else None.
 
-    An int4 / int8 row's largest coordinate is stored as +-7 / +-127 (bank/quant.py), so its
+    An int4 / int8 row's largest coordinate is stored as +-7 / +-127 (bank/store.py), so its
     codes are rint(row x 7 / peak) or rint(row x 127 / peak); checked exactly, with the
     normalisation a loaded bank's rows come from (bank_file.from_stored).
     """

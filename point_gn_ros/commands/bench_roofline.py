@@ -107,7 +107,7 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
 def search_roofline_rows(peaks, quick: bool, repeats: int) -> list[Row]:
     """Lone-query classification against a 100k-entry bank (10k with --quick).
 
-    Exact float32 scan and the two-stage search (bank/search.py), thread CPU time.
+    Exact float32 scan and the two-stage search (bank/index.py), thread CPU time.
     """
     import numpy as np
 

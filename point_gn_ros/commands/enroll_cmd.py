@@ -50,13 +50,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         '(core/fusion.py); refused if the views do not overlap')
     a.add_argument('--lda-debias', type=_share, default=2.0, metavar='F',
                    help="share of a wide LDA's mean-noise correction for a class this add "
-                        'creates (bank/lda.py lda_noise_trace): its LDA bias rises by F x '
+                        'creates (lda_noise_trace): its LDA bias rises by F x '
                         'tr(P Sigma) / (2 n) for its n examples; 0 = none, 0-2; with '
                         '--steal-budget, the most a class gets (default 2: train CV)')
     a.add_argument('--steal-budget', type=_budget, default=0.001, metavar='RHO',
                    help='give a class this add creates the largest share <= --lda-debias '
                         'whose predicted share of built-class examples called it stays <= '
-                        'RHO (bank/debias.py); 0 = the share itself, 0-0.5 (default 0.001: '
+                        'RHO (bank/discriminant.py); 0 = the share itself, 0-0.5 (default 0.001: '
                         'train CV)')
     _common(a)
     a.set_defaults(func=_add)

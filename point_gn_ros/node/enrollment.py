@@ -126,15 +126,15 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                                     '(default: built classes keep theirs, each enrolled class '
                                     'gets their mean share).',
                          {'additional_constraints': "one of 'entries', 'balanced', 'typical'"}),
-    'enroll_lda_debias': (2.0, 'Share f of the mean-noise correction of a wide LDA (bank/lda.py '
-                               'lda_noise_trace) for classes created by enrollment: LDA bias += '
-                               'f tr(P Sigma) / (2 n); 0 = none; with enroll_steal_budget > 0, '
+    'enroll_lda_debias': (2.0, 'Share f of the mean-noise correction of a wide LDA '
+                               '(bank/discriminant.py lda_noise_trace) for classes created by '
+                               'enrollment: LDA bias += f tr(P Sigma) / (2 n); 0 = none; with enroll_steal_budget > 0, '
                                'the most a class gets. Default 2: the train-CV choice (README, '
                                'issue 12).',
                           {'floating_point_range': [FloatingPointRange(
                               from_value=0.0, to_value=MAX_SHARE, step=0.0)]}),
     'enroll_steal_budget': (0.001, 'Steal budget rho of each class created by enrollment '
-                                   '(bank/debias.py): it gets the largest share <= '
+                                   '(bank/discriminant.py): it gets the largest share <= '
                                    'enroll_lda_debias whose predicted share of built-class '
                                    'examples called it stays <= rho; 0 = every such class gets '
                                    'enroll_lda_debias. Default 0.001: the train-CV choice.',
@@ -343,7 +343,7 @@ class Enrollment(ManagedEntity):
         """A recognizer for one bank version, sharing the node's encoder.
 
         previous: the recognizer of the version before (an enrollment): its search index is
-        extended rather than rebuilt where that is exact (bank/search.py).
+        extended rather than rebuilt where that is exact (bank/index.py).
         """
         from point_gn_ros.bank.taught import fit_rule
         from point_gn_ros.core.surface import volume_rule

@@ -195,7 +195,7 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                        '(indexed from 20,000 entries on the CPU).',
                {'additional_constraints': "one of 'auto', 'exact', 'indexed'"}),
     'object_test': (True, "Apply the bank's object test to classes taught by enrollment "
-                          '(bank/objects.py: a taught class gains on scans nearer its object '
+                          '(bank/model.py: a taught class gains on scans nearer its object '
                           'than any built one, loses on the others); false = the head alone. '
                           'Banks without one (format < 6): no effect.', {}),
     'metric_size': (True, 'Input clouds are in metres (z up after up_axis): their measured size '
