@@ -128,7 +128,8 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                          {'additional_constraints': "one of 'entries', 'balanced', 'typical'"}),
     'enroll_lda_debias': (2.0, 'Share f of the mean-noise correction of a wide LDA '
                                '(bank/discriminant.py lda_noise_trace) for classes created by '
-                               'enrollment: LDA bias += f tr(P Sigma) / (2 n); 0 = none; with enroll_steal_budget > 0, '
+                               'enrollment: LDA bias += f tr(P Sigma) / (2 n); 0 = none; with '
+                               'enroll_steal_budget > 0, '
                                'the most a class gets. Default 2: the train-CV choice (README, '
                                'issue 12).',
                           {'floating_point_range': [FloatingPointRange(
