@@ -441,3 +441,78 @@ def test_enrollment_into_a_ridge_bank_publishes_the_term_fitted(
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(back.head.ridge_coef, expected)
+
+
+def test_a_saved_bank_with_three_taught_classes_answers_the_same_everywhere(
+        harness: Harness, ridge_bank: Path, tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """3 taught classes on a ridge bank, saved and reloaded, answer the same everywhere.
+
+    The node, `replay --offline`, `classify` and the Python API give the same labels (and
+    scores where they are read).
+    """
+    import json
+
+    from point_gn_ros.bag.reader import read_bag
+    from point_gn_ros.bag.writer import WriteOptions, write_bag
+    from point_gn_ros.bank.enroll import BankFile, add_examples
+    from point_gn_ros.bank.refit import RefitPolicy
+    from point_gn_ros.cli import main as cli_main
+    from point_gn_ros.core.size import size_descriptors
+    from point_gn_ros.recognizer import Recognizer
+    from conftest import ArrayDataset
+
+    taught = ('sofa', 'bathtub', 'piano')
+    xyz, _ = pick('test', taught, 2)
+    rec = Recognizer.from_bank(ridge_bank)
+    file = BankFile.load(ridge_bank)
+    policy = RefitPolicy(lda_prior='typical', lda_debias=2.0, lda_steal_budget=0.001)
+    for k, name in enumerate(taught):
+        clouds = _variants(xyz[2 * k], 5, seed=10 + k)
+        file = add_examples(file, rec.encode(clouds), name, 'test', policy=policy,
+                            sizes=size_descriptors(clouds)).file
+    assert file.bank.head.has_ridge and 'pending' not in file.bank.meta['head']['ridge']
+    saved = file.save(tmp_path / 'taught3.npz')
+    names = file.bank.class_names
+    # the queries: other objects of the taught classes and some built ones, through a bag
+    objects = [c for k in range(3) for c in _variants(xyz[2 * k + 1], 2, seed=20 + k)]
+    built, _ = pick('test', ('chair', 'lamp', 'airplane'), 1)
+    objects += [c * 0.6 + 1.0 for c in built]
+    truth = np.array([names.index(taught[k]) for k in range(3) for _ in range(2)]
+                     + [names.index(n) for n in ('chair', 'lamp', 'airplane')])
+    bag = write_bag(ArrayDataset(np.array(objects, dtype=object), truth, names),
+                    tmp_path / 'bag', WriteOptions(rate_hz=10)).path
+    contents = read_bag(bag, keep_clouds=True)
+    clouds = [next(iter(m.clouds.values())) for m in contents.messages]
+    # the Python API
+    api = Recognizer.as_node(saved).classify_clouds(clouds)
+    # `replay --offline`
+    out = tmp_path / 'offline.json'
+    assert cli_main(['replay', str(bag), '--offline', '--bank', str(saved), '--json', str(out),
+                     '--quiet']) == 0
+    offline = {row[0]: row[4] for row in json.loads(out.read_text())['predictions']}
+    assert [offline[m.index] for m in contents.messages] == api.labels.tolist()
+    # `classify`, one file a cloud
+    files = []
+    for i, c in enumerate(clouds):
+        files.append(str(tmp_path / f'q{i}.npy'))
+        np.save(files[-1], c)
+    capsys.readouterr()
+    assert cli_main(['classify', *files, '--bank', str(saved), '--json', '--top-k', '1']) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines() if x.startswith('{')]
+    cli = [names.index(x['label']) if x['label'] != 'unknown' else -1 for x in lines]
+    assert cli == api.labels.tolist()
+    np.testing.assert_allclose([x['top'][0]['score'] for x in lines], api.scores, atol=1e-5)
+    # the node, started on the saved bank
+    node = _start(saved, tmp_path / 'node.log', enable_enrollment=False)
+    c = None
+    try:
+        c = Client(harness, node, enrolling=False)
+        c.wait_classes(lambda got: got == names)
+        answers = c.classify(clouds, 900)
+    finally:
+        if c is not None:
+            c.close()
+        assert node.stop() == 0, node.log()
+    assert [int(a[0][0]) for a in answers] == api.labels.tolist()
+    np.testing.assert_allclose([float(a[1][0]) for a in answers], api.scores, atol=1e-5)
+    assert (api.labels[:6] == truth[:6]).any()      # a taught class answers
