@@ -509,6 +509,11 @@ def test_a_saved_bank_with_three_taught_classes_answers_the_same_everywhere(
         c = Client(harness, node, enrolling=False)
         c.wait_classes(lambda got: got == names)
         answers = c.classify(clouds, 900)
+        # /diagnostics names the query path the Classifier chose
+        assert c.h.spin_until(lambda: 'query_head' in latest_diagnostics(c.diag, ': bank'),
+                              TIMEOUT_S), node.log()
+        bank_diag = latest_diagnostics(c.diag, ': bank')
+        assert (bank_diag['query_head'], bank_diag['query_search']) == ('compiled', 'exact')
     finally:
         if c is not None:
             c.close()
