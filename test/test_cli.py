@@ -35,6 +35,9 @@ def test_bank_build_and_info(bank: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(['bank', 'info', str(bank)]) == 0
     out = capsys.readouterr().out
     assert '24 entries, 3 classes' in out and 'gamma' in out and 'chair' in out
+    from point_gn_ros.core import kernels
+    head = 'compiled' if kernels.load() is not None else 'reference'
+    assert f'query path (CPU): {head} head' in out and 'exact search' in out
     assert main(['bank', 'info', str(bank), '--json']) == 0
     meta = json.loads(capsys.readouterr().out)
     assert meta['provenance']['count'] == 24 and meta['provenance']['split'] == 'train'
