@@ -755,23 +755,21 @@ def stored_rows(rows: torch.Tensor, dtype: str) -> torch.Tensor:
 
 
 # ---- the bank and its file
-FORMAT_VERSION = 3
-# Written as version 2 when a bank has no views section and no int8/int4 features (older
-# readers).
-PLAIN_VERSION = 2
-# Written when a section's head has a kernel ridge term (bank/discriminant.py): older readers would
-# drop the term silently, so they refuse the file instead.
-RIDGE_VERSION = 4
-# Written when a section stores its large matrices as scaled float16 (bank/store.py): older
-# readers would take the scaled values as they are.
-HALF_VERSION = 5
-# Written when a two-section bank holds an object test (bank/model.py): older readers would
-# drop it silently (taught classes answered by the head alone), so they refuse the file.
-OBJECTS_VERSION = 6
-SECTIONED_VERSIONS = (FORMAT_VERSION, RIDGE_VERSION, HALF_VERSION, OBJECTS_VERSION)
-VIEWS_PREFIX = 'views_'
-# Older formats that still load (as the plain kernel vote).
+# The format-version table: version -> what a file of it holds beyond the version before.
+# A file is written in the lowest version that holds it; an older reader refuses a newer
+# version instead of dropping what it cannot read. Version 1 loads as the plain kernel vote.
+FORMAT_VERSIONS: dict[int, str] = {
+    1: 'kernel vote only (no head): loads as the plain vote',
+    2: 'the discriminant head',
+    3: 'int8 / int4 rows, a single-view section and its gate',
+    4: 'a kernel ridge term',
+    5: 'large matrices as scaled float16',
+    6: 'an object test of taught classes',
+}
 VOTE_ONLY_VERSIONS = (1,)
+PLAIN_VERSION, FORMAT_VERSION, RIDGE_VERSION, HALF_VERSION, OBJECTS_VERSION = 2, 3, 4, 5, 6
+SECTIONED_VERSIONS = tuple(v for v in FORMAT_VERSIONS if v >= FORMAT_VERSION)
+VIEWS_PREFIX = 'views_'
 REBUILD_HINT = 'point_gn bank build DATASET -o BANK (make default-bank for the shipped one)'
 _HEAD_ARRAYS = ('head_whiten', 'head_lda_coef', 'head_lda_bias')
 log = logging.getLogger(__name__)
