@@ -49,7 +49,7 @@ bench: $(STAMP)
 	$(VENV)/bin/point_gn bench
 
 # 10,000 seeded valid/invalid clouds through the node over DDS; every answer and the
-# diagnostics identity checked (CI runs 2,000: test/test_node_fuzz.py). FUZZ_COUNT=... to change.
+# diagnostics identity checked (CI runs 2,000: test/node/test_node_fuzz.py). FUZZ_COUNT=... to change.
 FUZZ_COUNT ?= 10000
 fuzz: $(STAMP) $(WITH_EXTRAS)
 	$(ROS_ENV) && python -m point_gn_ros.clients.fuzz --count $(FUZZ_COUNT) --json fuzz_report.json

@@ -1,13 +1,13 @@
 #!/usr/bin/env python3
-"""A lone query's compiled head (bank/lone.py) against the torch path of a batch: labels.
+"""The compiled head (bank/vote.py), lone and in batches, against the torch reference: labels.
 
 usage: benchmarks/lone_agreement.py [--bank BANK] [--data DIR] [--split test] [--cache DIR]
 
 Encodes the split as `point_gn eval` does, complete objects at random yaw (seed 0) and one
 single-view scan of each object (seed 0), then classifies every row three times through the
-bank's Classifier: in one batch by the torch head (`compiled_finish = False`), alone (the
-compiled path), and in one batch as the node does (torch up to an exact section's cosines,
-then the compiled finish). Reports the labels that differ from the torch head's, the
+bank's Classifier, every section searched exactly: in one batch by the torch reference head
+(`compiled=False`), alone (the compiled lone path), and in one batch as the node does (torch
+embedding, then the compiled finish). Reports the labels that differ from the torch head's, the
 accuracies and the largest probability, novelty and gate differences. An agreement check of
 implementations of one function, not an accuracy figure.
 """
@@ -40,9 +40,10 @@ def main() -> None:
     torch.set_num_threads(1)            # as the node runs its classifier
 
     bank = FeatureBank.load(args.bank)
-    clf = Classifier(bank)
-    if clf.lone is None:
-        raise SystemExit('this bank has no compiled lone-query path (bank/lone.py)')
+    clf = Classifier(bank, search='exact')
+    ref = Classifier(bank, search='exact', compiled=False)
+    if not clf.lone:
+        raise SystemExit('this bank has no compiled lone-query path (bank/vote.py)')
     ds = open_dataset(args.data, split=args.split)
     true = np.asarray(ds.labels)
     sources = {'complete objects, random yaw 0':
@@ -56,9 +57,7 @@ def main() -> None:
     for what, source in sources.items():
         feats = encode_dataset(source, make_encoder(bank.config), cache_dir=args.cache)
         with torch.no_grad():
-            clf.compiled_finish = False
-            prob, nov, gate = clf._evaluate(feats)
-            clf.compiled_finish = True
+            prob, nov, gate = ref._evaluate(feats)
             batch_prob = clf._evaluate(feats)[0]
             lone = [clf._evaluate(feats[i:i + 1]) for i in range(len(feats))]
         lone_prob = torch.cat([o[0] for o in lone])

@@ -3,7 +3,7 @@
 Real data, a tiny bank, the node in its own process, and an in-test rclpy participant on a
 private ROS domain.
 
-Kept out of conftest.py (owned by the datasets tests) and imported by the test_node_* modules.
+Kept out of conftest.py (owned by the datasets tests) and imported by the tests that start a node.
 """
 
 from __future__ import annotations

@@ -177,7 +177,9 @@ class Classifier:
         previous: the classifier of the version this one follows (an enrollment): its
         indexes are extended instead of rebuilt where that gives the same (`make_search`);
         object_test: apply the bank's object test to its taught classes; the thresholds:
-        `unknown_rules`; compiled: False runs the torch reference head (the tests' reference).
+        `unknown_rules` (the fit rule also makes a query whose size lies outside its answer's
+        size region unknown); compiled: False runs the torch reference head (the tests'
+        reference).
         """
         self.bank = bank
         self.device = torch.device(device)
@@ -374,11 +376,11 @@ class Classifier:
         """
         prob, novelty, partial = self._evaluate(features)
         prob, novelty = prob.cpu(), novelty.cpu()
-        fit = None
+        fit = outside = None
         if len(features) and (sizes is not None or self.rules.fit is not None
                               or self.bank.meta.get('taught')):
             z = self.transform(features.to(self.device)).cpu()
-            prob, fit = self.taught.apply(prob, z, sizes)
+            prob, fit, outside = self.taught.apply(prob, z, sizes)
         k = max(1, min(top_k, prob.shape[1]))
         top_s, top_i = prob.topk(k, dim=1)
         labels = top_i[:, 0].clone()
@@ -389,6 +391,8 @@ class Classifier:
             labels[novelty > rules.novelty] = UNKNOWN
         if rules.fit is not None and fit is not None:
             labels[torch.from_numpy(fit < rules.fit)] = UNKNOWN
+            if outside is not None:
+                labels[torch.from_numpy(outside)] = UNKNOWN
         if rules.volume is not None and volumes is not None:
             labels[torch.from_numpy(np.asarray(volumes) > rules.volume)] = UNKNOWN
         return Classification(labels=labels.numpy().astype(np.int64),

@@ -25,6 +25,14 @@ Fit (for the unknown rule): max_c (cos(z, m_c) + W / KAPPA plaus_c) over every c
 mean (built classes: the mean of their bank rows, size from the prior) -- how like its
 nearest class the query is in shape and size. Knobs chosen by CV on the tabletop set
 (experiments/size_knob_study.py, docs/SIZE.md).
+
+Size region (for the same unknown rule): a query whose size lies outside the size region of
+the class it is answered is `outside`. The distance is -2 plaus_c (taught: the squared
+standardised log-size distance; built: the squared prior-range gap in RANGE_TAU units); the
+region is distance <= REGION_CHI2 (the 95 % quantile of chi-square with SIZE_DIM degrees of
+freedom), widened for a taught class to the REGION_QUANTILE of its own examples'
+leave-one-out distances where those need more (a class whose scans vary more in size than
+the prior says). Chosen by experiments/open_set_study.py.
 """
 
 from __future__ import annotations
@@ -54,6 +62,9 @@ DEFAULT_FIT_THRESHOLD = 0.0
 FIT_OFF = -10.0        # a fit threshold at or below this: no fit rule
 MAX_PLAUS = 50.0       # plausibility floor (-MAX_PLAUS): one absurd size does not swamp all
 KEY = 'taught'
+REGION_CHI2 = 12.59    # chi-square (SIZE_DIM = 6 dof) 95 % quantile: the size region's radius^2
+REGION_QUANTILE = 0.95  # of the taught examples' leave-one-out distances (the widening)
+KEPT_SIZES = 20        # taught examples' sizes kept per class (the newest) for the widening
 _PRIOR_FILE = Path(__file__).resolve().parents[1] / 'data' / 'size_prior.json'
 _PRIOR_DIMS = ('height', 'length', 'width')
 
@@ -101,7 +112,8 @@ def add_taught(meta: dict[str, Any], class_name: str, z: torch.Tensor,
     z: (M, d) the examples' transformed unit rows (canonical frames); sizes: (M, SIZE_DIM)
     log sizes (core/size.py) or None when the examples carry no metric size.
     Record: n (examples), mean (d,) of z, and with sizes: sn, smean (SIZE_DIM,), sm2 (sum of
-    squared deviations), merged by Chan's update.
+    squared deviations), merged by Chan's update, and sizes: the newest KEPT_SIZES examples'
+    log sizes (for the size region's widening).
     """
     taught = dict(meta.get(KEY, {}))
     rec = dict(taught.get(class_name, {}))
@@ -123,6 +135,8 @@ def add_taught(meta: dict[str, Any], class_name: str, z: torch.Tensor,
         rec['sn'] = tot
         rec['smean'] = _rounded(smean0 + delta * k / tot)
         rec['sm2'] = _rounded(sm20 + ((s - mu) ** 2).sum(0) + delta ** 2 * sn0 * k / tot)
+        kept = [list(r) for r in rec.get('sizes', [])] + [_rounded(r, 4) for r in s]
+        rec['sizes'] = kept[-KEPT_SIZES:]
     taught[class_name] = rec
     return {**meta, KEY: taught}
 
@@ -134,8 +148,8 @@ def drop_taught(meta: dict[str, Any], class_name: str) -> dict[str, Any]:
     return {**meta, KEY: {c: r for c, r in meta[KEY].items() if c != class_name}}
 
 
-def _rounded(v: np.ndarray) -> list[float]:
-    return [round(float(x), 6) for x in v]
+def _rounded(v: np.ndarray, digits: int = 6) -> list[float]:
+    return [round(float(x), digits) for x in v]
 
 
 # ------------------------------------------------------------------ the layer
@@ -147,7 +161,8 @@ class TaughtLayer:
 
     taught (T,) class ids with a mean; means (T, d) unit; built_ids (K,) and built_means
     (K, d): the other classes' bank-row means; size_mu, size_var (C, SIZE_DIM) for classes
-    with measured sizes (nan elsewhere); ranges (C, 3, 2) log prior ranges (nan: none).
+    with measured sizes (nan elsewhere); ranges (C, 3, 2) log prior ranges (nan: none);
+    region (C,) the size region's squared radius per class (module docstring).
     """
 
     taught: np.ndarray
@@ -157,6 +172,7 @@ class TaughtLayer:
     size_mu: np.ndarray
     size_var: np.ndarray
     ranges: np.ndarray
+    region: np.ndarray
     kappa: float = KAPPA
     w_size: float = W_SIZE
     gate_cos: float = GATE_COS
@@ -170,6 +186,7 @@ class TaughtLayer:
         rec = {k: v for k, v in meta.get(KEY, {}).items()
                if k in class_names and isinstance(v, dict)}
         taught, means = [], []
+        region = np.full(c, REGION_CHI2)
         mu, var = np.full((c, SIZE_DIM), np.nan), np.full((c, SIZE_DIM), np.nan)
         for name, r in rec.items():
             i = class_names.index(name)
@@ -182,6 +199,9 @@ class TaughtLayer:
                 mu[i] = np.asarray(r['smean'], dtype=np.float64)
                 var[i] = (np.asarray(r['sm2'], dtype=np.float64) + PRIOR_COUNT * PRIOR_VAR) \
                     / (sn - 1 + PRIOR_COUNT)
+                loo = loo_distances(np.asarray(r.get('sizes', []), dtype=np.float64))
+                if loo:
+                    region[i] = max(REGION_CHI2, float(np.quantile(loo, REGION_QUANTILE)))
         taught_ids = np.asarray(taught, dtype=np.int64)
         built = np.setdiff1d(np.arange(c), taught_ids)
         lab = labels.numpy()
@@ -198,7 +218,7 @@ class TaughtLayer:
             if name in prior:
                 ranges[i] = prior[name]
         return cls(taught_ids, np.asarray(means).reshape(-1, d), built.astype(np.int64), bm,
-                   mu, var, ranges)
+                   mu, var, ranges, region)
 
     @property
     def active(self) -> bool:
@@ -222,10 +242,11 @@ class TaughtLayer:
         return np.maximum(out, -MAX_PLAUS)
 
     def apply(self, prob: torch.Tensor, z: torch.Tensor, sizes: np.ndarray | None
-              ) -> tuple[torch.Tensor, np.ndarray]:
+              ) -> tuple[torch.Tensor, np.ndarray, np.ndarray | None]:
         """Prob (B, C) rows summing to 1, z (B, d) unit rows, sizes (B, SIZE_DIM) or None.
 
-        -> moved probabilities (B, C) float32, fit (B,) float64 (module docstring).
+        -> moved probabilities (B, C) float32, fit (B,) float64, outside (B,) bool: the
+        answer's size outside its class's size region (None without sizes; module docstring).
         """
         logp = prob.double().clamp_min(1e-300).log().numpy()
         zq = z.double().numpy()
@@ -246,7 +267,11 @@ class TaughtLayer:
             built = np.setdiff1d(np.arange(logp.shape[1]), self.taught)
             logp[:, built] += self.w_size * plaus[:, built]
         out = torch.softmax(torch.from_numpy(logp), dim=1).float()
-        return out, self.fit(zq, plaus)
+        outside = None
+        if plaus is not None:
+            top = out.argmax(1).numpy()
+            outside = -2.0 * plaus[np.arange(len(top)), top] > self.region[top]
+        return out, self.fit(zq, plaus), outside
 
     def fit(self, zq: np.ndarray, plaus: np.ndarray | None) -> np.ndarray:
         """(B, d) unit rows, plausibility (B, C) or None -> (B,) best shape-and-size fit."""
@@ -258,6 +283,25 @@ class TaughtLayer:
         if plaus is not None:
             cos = cos + self.w_size / self.kappa * plaus
         return cos.max(1) if cos.shape[1] else np.zeros(len(zq))
+
+
+def loo_distances(sizes: np.ndarray) -> list[float]:
+    """Leave-one-out distances of one class's taught examples.
+
+    sizes: (n, SIZE_DIM) log sizes -> each one's distance (-2 plausibility) to the class's
+    size model fitted without it (none for fewer than 2 examples).
+    """
+    n = len(sizes)
+    if n < 2 or sizes.ndim != 2 or sizes.shape[1] != SIZE_DIM:
+        return []
+    total = sizes.sum(0)
+    out = []
+    for i in range(n):
+        rest = np.delete(sizes, i, axis=0)
+        mu = (total - sizes[i]) / (n - 1)
+        var = (((rest - mu) ** 2).sum(0) + PRIOR_COUNT * PRIOR_VAR) / (n - 2 + PRIOR_COUNT)
+        out.append(float(min(((sizes[i] - mu) ** 2 / var).sum(), 2 * MAX_PLAUS)))
+    return out
 
 
 def _logsumexp(a: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ messages unanswered. It then checks that
   received = sent, answered = valid, rejected = invalid, dropped = failed = in_flight = 0.
 
 ``python -m point_gn_ros.clients.fuzz --count 10000`` (``make fuzz``); exit code 0 when every
-check holds. test/test_node_fuzz.py runs 2,000 in CI.
+check holds. test/node/test_node_fuzz.py runs 2,000 in CI.
 """
 
 from __future__ import annotations

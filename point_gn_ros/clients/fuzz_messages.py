@@ -1,7 +1,7 @@
 """A seeded mix of valid and invalid PointCloud2 messages, each with the answer it must get.
 
 ROS-free except for the message classes (sensor_msgs, imported lazily). Used by the node
-fuzz (`point_gn_ros.clients.fuzz`, `make fuzz`, test/test_node_fuzz.py) and by the
+fuzz (`point_gn_ros.clients.fuzz`, `make fuzz`, test/node/test_node_fuzz.py) and by the
 pipeline's fault tests. The expected answer of a valid message is computed here by the
 documented rules (docs/NODE.md), independently of the node's code: the segment ids of
 non-negative segments with at least `min_points` finite points, and when there are more

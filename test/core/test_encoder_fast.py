@@ -20,10 +20,7 @@ from point_gn_ros.core.encoder import PointGNEncoder
 from point_gn_ros.core.encoder_naive import NaiveEncoder, fps, knn
 from point_gn_ros.core.sampling import prepare
 
-from conftest import require_shared
-
-SHARED = Path(__file__).parents[1] / '..' / 'shared'
-MODELNET = SHARED / 'datasets' / 'modelnet40_1024'
+from conftest import MODELNET, require_shared
 REL_TOL = 1e-4  # max|fast - naive| <= REL_TOL * max|naive|, per cloud
 
 

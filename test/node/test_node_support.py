@@ -12,7 +12,7 @@ from point_gn_ros.node.markers import MarkerTracker, box_line_points, class_colo
 from point_gn_ros.node.stats import LatencyWindow, NodeStats, RateMeter
 from point_gn_ros.node.rate_limited_log import RateLimitedLogger, RateLimiter
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 class FakeClock:

@@ -13,8 +13,9 @@ from point_gn_ros.bank.taught import (DEFAULT_FIT_THRESHOLD, KEY, TaughtLayer, f
                                       plausible_scale, size_prior)
 from point_gn_ros.core.size import SIZE_DIM, size_descriptor
 
-TABLETOP = (Path(__file__).resolve().parents[2] / 'shared' / 'datasets' / 'restaurant_kinectsim'
-            / 'all')
+from conftest import SHARED
+
+TABLETOP = SHARED / 'datasets' / 'restaurant_kinectsim' / 'all'
 
 
 def _box(rng: np.random.Generator, dims: tuple[float, float, float], n: int = 3000) -> np.ndarray:
@@ -67,21 +68,51 @@ def test_taught_block_is_redivided_by_prototype_and_size_and_built_classes_by_th
     prob = torch.full((1, 4), 0.25)
     z = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0, 0.1]]), dim=1)
     # nearly the same shape cosine to both taught classes: the size decides
-    p_small, _ = layer.apply(prob, z, small[None])
-    p_big, _ = layer.apply(prob, z, big[None])
+    p_small, _, _ = layer.apply(prob, z, small[None])
+    p_big, _, _ = layer.apply(prob, z, big[None])
     assert p_small[0, 2] > 0.9 * (p_small[0, 2] + p_small[0, 3])
     assert p_big[0, 3] > 0.9 * (p_big[0, 2] + p_big[0, 3])
     # a 10 cm object is a plausible cup and an implausible wardrobe
     assert p_small[0, 0] > 10 * p_small[0, 1]
     # without sizes the taught block is re-divided by the prototypes only, built ones kept
-    p_none, fit = layer.apply(prob, torch.nn.functional.normalize(
+    p_none, fit, _ = layer.apply(prob, torch.nn.functional.normalize(
         torch.tensor([[0.0, 0.0, 1.0, -0.2]]), dim=1), None)
     assert p_none[0, 2] > p_none[0, 3] and torch.allclose(p_none[0, :2], prob[0, :2])
     assert fit.shape == (1,)
     # a query unlike every taught mean keeps the head's division of the taught block
     head = torch.tensor([[0.1, 0.1, 0.2, 0.6]])
-    p_far, _ = layer.apply(head, torch.eye(4)[[0]], None)
+    p_far, _, _ = layer.apply(head, torch.eye(4)[[0]], None)
     assert torch.allclose(p_far, head, atol=1e-3)
+
+
+def test_an_answer_outside_its_classs_size_region_is_flagged_and_the_region_widens() -> None:
+    from point_gn_ros.bank.taught import KEPT_SIZES, REGION_CHI2, add_taught
+    names = ['cup', 'wardrobe', 'carton', 'bin']
+    rng = np.random.default_rng(7)
+    carton = np.log([0.15, 0.08, 0.06, 0.04, 0.02, 0.015]) + rng.normal(0, 0.05, (5, SIZE_DIM))
+    meta = add_taught({}, 'carton', torch.nn.functional.normalize(torch.eye(4)[[2] * 5], dim=1),
+                      carton)
+    # a bin taught from scans whose sizes vary far more than the prior's 14 %
+    bins = np.log([0.6, 0.4, 0.3, 0.2, 0.1, 0.08]) + rng.normal(0, 0.5, (6, SIZE_DIM))
+    meta = add_taught(meta, 'bin', torch.nn.functional.normalize(torch.eye(4)[[3] * 6], dim=1),
+                      bins)
+    layer = _layer(json.loads(json.dumps(meta)), names)
+    carton_id, bin_id = 2, 3
+    assert layer.region[0] == REGION_CHI2                 # built: the chi-square radius
+    assert layer.region[carton_id] == REGION_CHI2         # its examples agree with the prior
+    assert layer.region[bin_id] > 1.5 * REGION_CHI2       # widened by its own examples
+    prob = torch.tensor([[0.05, 0.05, 0.85, 0.05]])
+    z = torch.nn.functional.normalize(torch.eye(4)[[2]], dim=1)
+    _, _, inside = layer.apply(prob, z, carton.mean(0)[None])
+    _, _, far = layer.apply(prob, z, (carton.mean(0) + np.log(100.0))[None])   # 15 m
+    assert inside.tolist() == [False] and far.tolist() == [True]
+    assert layer.apply(prob, z, None)[2] is None          # no sizes: no size region
+    # a bin-sized query answered 'carton' by the head: moved to the bin, inside its region
+    p, _, flag = layer.apply(prob, z, bins.mean(0)[None])
+    assert p.argmax().item() == bin_id and flag.tolist() == [False]
+    many = add_taught(meta, 'carton', torch.nn.functional.normalize(
+        torch.eye(4)[[2] * 30], dim=1), np.repeat(carton, 6, axis=0))
+    assert len(many[KEY]['carton']['sizes']) == KEPT_SIZES
 
 
 @pytest.fixture(scope='module')

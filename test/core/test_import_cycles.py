@@ -11,7 +11,7 @@ import ast
 from pathlib import Path
 
 PACKAGE = 'point_gn_ros'
-ROOT = Path(__file__).resolve().parents[1] / PACKAGE
+ROOT = Path(__file__).resolve().parents[2] / PACKAGE
 
 
 def _modules() -> dict[str, Path]:

@@ -26,7 +26,7 @@ from point_gn_ros.bag.realism import Realism
 from point_gn_ros.bag.writer import WriteOptions, write_bag
 from point_gn_ros.cli import main as cli_main
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DOMAIN_ID = int(os.environ.get('ROS_DOMAIN_ID') or random.randint(100, 200))  # caller's first
 MULTI_TOPIC = '/multi_objects'
 SINGLE_NODE, MULTI_NODE = 'bag_test_classifier', 'bag_test_multi_classifier'

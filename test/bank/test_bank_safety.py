@@ -32,7 +32,7 @@ from point_gn_ros.bank.store import MAX_CLASS_NAME, check_class_names
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.errors import BankError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 D = EncoderConfig().feature_dim
 
 

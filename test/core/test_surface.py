@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from point_gn_ros.core.surface import (DEFAULT_VOLUME_THRESHOLD, SURFACE_K, volume_rule,
                                        volumetric_shares)
 
-SAMPLES = Path(__file__).resolve().parents[2] / 'shared' / 'samples' / 'pcd'
+from conftest import SHARED
+
+SAMPLES = SHARED / 'samples' / 'pcd'
 
 
 def _blobs(rng: np.random.Generator, count: int, n: int = 50) -> list[np.ndarray]:

@@ -253,7 +253,7 @@ def test_sigkill_during_save_leaves_previous_bank(tmp_path: Path) -> None:
     src = BankFile.of(bank, 'float32').save(tmp_path / 'src.npz')
     dst = tmp_path / 'dst.npz'
     previous = BankFile.of(replace(bank, gamma=7.0), 'float32').save(dst)
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
     rng = np.random.default_rng(0)
     for _ in range(3):
         proc = subprocess.Popen([sys.executable, '-c', _saver_script(src, dst)], env=env,

@@ -1,0 +1,146 @@
+#!/usr/bin/env python3
+"""The size region of the unknown rule (bank/taught.py): its radius by CV, no test object read.
+
+A query answered with class c is unknown when its size lies outside c's size region:
+distance (-2 plausibility) > region_c. region_c is REGION_CHI2, widened for taught classes to
+the REGION_QUANTILE of their own examples' leave-one-out distances where those need more.
+Candidates: the 90 / 95 / 99 / 99.9 % chi-square quantiles (6 degrees of freedom), with and
+without the widening. Measured on:
+
+  tabletop   restaurant Kinect-sim tree (metres), --folds folds: a class left out, the other
+             19 taught into the shipped bank (5 views each, `add_examples` as `bank add`),
+             their other views (taught) and every view of the left-out class (unseen)
+             classified: share rejected by the region (the answered class's) of each
+  mn40       ModelNet40 TRAIN, one single-view scan of 25 objects a class at a plausible
+             real size (size prior x 0.8-1.25, as experiments/size_knob_study.py):
+             (a) built classes, shipped bank: share of the scans outside their answer's region;
+             (b) taught: 10 classes, 5 scans each taught, --folds folds: share of those
+                 classes' other scans outside their answer's region
+
+usage: experiments/open_set_study.py [--cache DIR] [--folds 6]
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from point_gn_ros.bank.builder import encode_dataset
+from point_gn_ros.bank.classifier import Classifier
+from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples
+from point_gn_ros.bank.taught import (KEY, REGION_CHI2, REGION_QUANTILE, loo_distances,
+                                      plausible_scale)
+from point_gn_ros.core.size import size_descriptors
+from point_gn_ros.core.views import VIEW_PROTOCOLS
+from point_gn_ros.datasets import open_dataset
+from point_gn_ros.datasets.views import ViewsDataset
+from point_gn_ros.recognizer import make_encoder
+
+SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'datasets'
+RADII = {'90 %': 10.64, '95 %': REGION_CHI2, '99 %': 16.81, '99.9 %': 22.46}
+POLICY = RefitPolicy()
+
+
+def outside(clf: Classifier, feats: torch.Tensor, sizes: np.ndarray, radius: float,
+            widen: bool) -> np.ndarray:
+    """(M,) bool: the answer's size outside its region at this radius (with / without widening)."""
+    layer = clf.taught
+    region = np.full(len(layer.region), radius)
+    if widen:
+        for name, rec in clf.bank.meta.get(KEY, {}).items():
+            loo = loo_distances(np.asarray(rec.get('sizes', []), dtype=np.float64))
+            if loo:
+                i = clf.bank.class_names.index(name)
+                region[i] = max(radius, float(np.quantile(loo, REGION_QUANTILE)))
+    clf._taught = replace(layer, region=region)
+    res = clf.classify(feats, top_k=1, sizes=sizes)
+    clf._taught = layer
+    return np.asarray(res.labels < 0)
+
+
+def teach(base: BankFile, feats: torch.Tensor, sizes: np.ndarray, y: np.ndarray,
+          names: list[str], classes: list[int], support: np.ndarray) -> BankFile:
+    bf = base
+    for c in classes:
+        idx = support[y[support] == c]
+        bf = add_examples(bf, feats[idx], names[c], source='open_set_study', policy=POLICY,
+                          sizes=sizes[idx]).file
+    return bf
+
+
+def table(title: str, rows: dict) -> None:
+    print(f'\n## {title}')
+    print('| radius | widening | ' + ' | '.join(rows[next(iter(rows))]) + ' |')
+    print('|---|---|' + '---|' * len(rows[next(iter(rows))]))
+    for (r, w), v in rows.items():
+        print(f'| {r} | {"yes" if w else "no"} | '
+              + ' | '.join(f'{100 * np.mean(x):.1f} %' for x in v.values()) + ' |')
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--cache', default='cache')
+    ap.add_argument('--folds', type=int, default=6)
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    cache = Path(args.cache)
+    base = BankFile.load(None)
+    enc = make_encoder(base.bank.config, 'cpu')
+    cells = [(r, w) for r in RADII for w in (False, True)]
+
+    ds = open_dataset(SHARED / 'restaurant_kinectsim' / 'all', split='train')
+    feats = torch.as_tensor(encode_dataset(ds, enc, 64, progress=False, cache_dir=cache))
+    sizes = size_descriptors([ds[i][0] for i in range(len(ds))])
+    y, names = np.asarray(ds.labels), list(ds.class_names)
+    tab = {cell: {'unseen rejected': [], 'taught rejected': []} for cell in cells}
+    for fold in range(args.folds):
+        rng = np.random.default_rng(fold)
+        held = int(rng.integers(len(names)))
+        classes = [c for c in range(len(names)) if c != held]
+        support = np.concatenate([rng.permutation(np.flatnonzero(y == c))[:5] for c in classes])
+        clf = Classifier(teach(base, feats, sizes, y, names, classes, support).bank)
+        known = np.setdiff1d(np.flatnonzero(y != held), support)
+        unseen = np.flatnonzero(y == held)
+        for r, w in cells:
+            tab[r, w]['unseen rejected'].append(outside(clf, feats[unseen], sizes[unseen],
+                                                        RADII[r], w).mean())
+            tab[r, w]['taught rejected'].append(outside(clf, feats[known], sizes[known],
+                                                        RADII[r], w).mean())
+        print(f'fold {fold}: {names[held]} left out', flush=True)
+    table(f'tabletop, one class left out, 19 taught (5 views), {args.folds} folds', tab)
+
+    mn = open_dataset(SHARED / 'modelnet40_1024', split='train')
+    y_all = np.asarray(mn.labels)
+    rng = np.random.default_rng(0)
+    pick = np.concatenate([rng.permutation(np.flatnonzero(y_all == c))[:25] for c in range(40)])
+    views = ViewsDataset(mn, 1, 5, VIEW_PROTOCOLS['hpr'][0], include_full=False,
+                         random_yaw=True)
+    mfeats = torch.as_tensor(encode_dataset(views, enc, 64, progress=False,
+                                            cache_dir=cache))[pick]
+    my = y_all[pick]
+    clouds = [views[int(i)][0] * plausible_scale(mn[int(i)][0], mn.class_names[int(y_all[i])])
+              * rng.uniform(0.8, 1.25) for i in pick]
+    msizes = size_descriptors(clouds)
+    shipped = Classifier(base.bank)
+    mres = {cell: {'built rejected': [], 'taught rejected': []} for cell in cells}
+    for r, w in cells:
+        mres[r, w]['built rejected'].append(outside(shipped, mfeats, msizes, RADII[r], w).mean())
+    mnames = list(mn.class_names)
+    for fold in range(args.folds):
+        r_ = np.random.default_rng(100 + fold)
+        classes = [int(c) for c in r_.choice(40, 10, replace=False)]
+        support = np.concatenate([r_.permutation(np.flatnonzero(my == c))[:5] for c in classes])
+        clf = Classifier(teach(base, mfeats, msizes, my, mnames, classes, support).bank)
+        q = np.setdiff1d(np.flatnonzero(np.isin(my, classes)), support)
+        for r, w in cells:
+            mres[r, w]['taught rejected'].append(outside(clf, mfeats[q], msizes[q],
+                                                         RADII[r], w).mean())
+    table("ModelNet40 train scans at plausible sizes: outside their answer's region", mres)
+
+
+if __name__ == '__main__':
+    main()
