@@ -294,12 +294,13 @@ def assert_same_labels(node_labels: Sequence[int], bank_path: Path,
                        clouds: Sequence[np.ndarray], tie: float = 1e-4) -> None:
     """The node's labels equal the offline Recognizer's for the same clouds.
 
-    Only a near-tie (top-2 scores within `tie`, where float rounding in a different batch
-    may decide) may go to the runner-up.
+    The offline side has the node's default unknown rules (`Recognizer.as_node`), as the
+    nodes of these tests run at their defaults. Only a near-tie (top-2 scores within `tie`,
+    where float rounding in a different batch may decide) may go to the runner-up.
     """
     from point_gn_ros.recognizer import Recognizer
 
-    res = Recognizer.from_bank(bank_path).classify_clouds(list(clouds))
+    res = Recognizer.as_node(bank_path).classify_clouds(list(clouds))
     for i, got in enumerate(node_labels):
         if got == res.labels[i]:
             continue

@@ -81,6 +81,8 @@ class Classification:
     partial: np.ndarray | None = None    # (B,) gate's p(single-view scan); two-section banks
     fit: np.ndarray | None = None        # (B,) shape-and-size fit to the nearest class
                                          # (bank/taught.py); None when the layer did not run
+    size_misfit: np.ndarray | None = None  # (B,) the answer's size distance over its class's
+                                           # size region (> 1: outside); None without sizes
     volumetric: np.ndarray | None = None  # (B,) share of volumetric neighbourhoods
                                           # (core/surface.py); None without the volume rule
 
@@ -120,8 +122,9 @@ class UnknownRules:
     """When a query is unknown (label -1); each rule None is off.
 
     probability: top-1 calibrated probability below it; novelty: novelty above it;
-    fit: shape-and-size fit (bank/taught.py) below it; volume: share of volumetric
-    neighbourhoods (core/surface.py) above it.
+    fit: shape-and-size fit (bank/taught.py) below it, or the size outside the answer's size
+    region (size misfit > 1); volume: share of volumetric neighbourhoods (core/surface.py)
+    above it.
     """
 
     probability: float | None = None
@@ -376,11 +379,11 @@ class Classifier:
         """
         prob, novelty, partial = self._evaluate(features)
         prob, novelty = prob.cpu(), novelty.cpu()
-        fit = outside = None
+        fit = misfit = None
         if len(features) and (sizes is not None or self.rules.fit is not None
                               or self.bank.meta.get('taught')):
             z = self.transform(features.to(self.device)).cpu()
-            prob, fit, outside = self.taught.apply(prob, z, sizes)
+            prob, fit, misfit = self.taught.apply(prob, z, sizes)
         k = max(1, min(top_k, prob.shape[1]))
         top_s, top_i = prob.topk(k, dim=1)
         labels = top_i[:, 0].clone()
@@ -391,8 +394,8 @@ class Classifier:
             labels[novelty > rules.novelty] = UNKNOWN
         if rules.fit is not None and fit is not None:
             labels[torch.from_numpy(fit < rules.fit)] = UNKNOWN
-            if outside is not None:
-                labels[torch.from_numpy(outside)] = UNKNOWN
+            if misfit is not None:
+                labels[torch.from_numpy(misfit > 1.0)] = UNKNOWN
         if rules.volume is not None and volumes is not None:
             labels[torch.from_numpy(np.asarray(volumes) > rules.volume)] = UNKNOWN
         return Classification(labels=labels.numpy().astype(np.int64),
@@ -404,6 +407,8 @@ class Classifier:
                               partial=None if partial is None
                               else partial.cpu().numpy().astype(np.float32),
                               fit=None if fit is None else fit.astype(np.float32),
+                              size_misfit=None if misfit is None
+                              else misfit.astype(np.float32),
                               volumetric=None if volumes is None
                               else np.asarray(volumes, dtype=np.float32))
 

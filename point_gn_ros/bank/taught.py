@@ -30,9 +30,10 @@ Size region (for the same unknown rule): a query whose size lies outside the siz
 the class it is answered is `outside`. The distance is -2 plaus_c (taught: the squared
 standardised log-size distance; built: the squared prior-range gap in RANGE_TAU units); the
 region is distance <= REGION_CHI2 (the 95 % quantile of chi-square with SIZE_DIM degrees of
-freedom), widened for a taught class to the REGION_QUANTILE of its own examples'
-leave-one-out distances where those need more (a class whose scans vary more in size than
-the prior says). Chosen by experiments/open_set_study.py.
+freedom), widened for the taught classes to the REGION_QUANTILE of their examples'
+leave-one-out distances, pooled over the taught classes, where those need more (scans that
+vary more in size than the prior says). Radius and pooling chosen by
+experiments/open_set_study.py (docs/SIZE.md).
 """
 
 from __future__ import annotations
@@ -185,8 +186,7 @@ class TaughtLayer:
         d = z_rows.shape[1]
         rec = {k: v for k, v in meta.get(KEY, {}).items()
                if k in class_names and isinstance(v, dict)}
-        taught, means = [], []
-        region = np.full(c, REGION_CHI2)
+        taught, means, loo = [], [], []
         mu, var = np.full((c, SIZE_DIM), np.nan), np.full((c, SIZE_DIM), np.nan)
         for name, r in rec.items():
             i = class_names.index(name)
@@ -199,9 +199,7 @@ class TaughtLayer:
                 mu[i] = np.asarray(r['smean'], dtype=np.float64)
                 var[i] = (np.asarray(r['sm2'], dtype=np.float64) + PRIOR_COUNT * PRIOR_VAR) \
                     / (sn - 1 + PRIOR_COUNT)
-                loo = loo_distances(np.asarray(r.get('sizes', []), dtype=np.float64))
-                if loo:
-                    region[i] = max(REGION_CHI2, float(np.quantile(loo, REGION_QUANTILE)))
+                loo.extend(loo_distances(np.asarray(r.get('sizes', []), dtype=np.float64)))
         taught_ids = np.asarray(taught, dtype=np.int64)
         built = np.setdiff1d(np.arange(c), taught_ids)
         lab = labels.numpy()
@@ -217,6 +215,10 @@ class TaughtLayer:
         for i, name in enumerate(class_names):
             if name in prior:
                 ranges[i] = prior[name]
+        # taught classes with sizes: the chi-square radius, widened to what their examples need
+        wide = max(REGION_CHI2, float(np.quantile(loo, REGION_QUANTILE))) if loo \
+            else REGION_CHI2
+        region = np.where(np.isfinite(mu[:, 0]), wide, REGION_CHI2)
         return cls(taught_ids, np.asarray(means).reshape(-1, d), built.astype(np.int64), bm,
                    mu, var, ranges, region)
 
@@ -245,8 +247,9 @@ class TaughtLayer:
               ) -> tuple[torch.Tensor, np.ndarray, np.ndarray | None]:
         """Prob (B, C) rows summing to 1, z (B, d) unit rows, sizes (B, SIZE_DIM) or None.
 
-        -> moved probabilities (B, C) float32, fit (B,) float64, outside (B,) bool: the
-        answer's size outside its class's size region (None without sizes; module docstring).
+        -> moved probabilities (B, C) float32, fit (B,) float64, misfit (B,) float64: the
+        answer's size distance over its class's region (> 1: outside; None without sizes;
+        module docstring).
         """
         logp = prob.double().clamp_min(1e-300).log().numpy()
         zq = z.double().numpy()
@@ -267,11 +270,11 @@ class TaughtLayer:
             built = np.setdiff1d(np.arange(logp.shape[1]), self.taught)
             logp[:, built] += self.w_size * plaus[:, built]
         out = torch.softmax(torch.from_numpy(logp), dim=1).float()
-        outside = None
+        misfit = None
         if plaus is not None:
             top = out.argmax(1).numpy()
-            outside = -2.0 * plaus[np.arange(len(top)), top] > self.region[top]
-        return out, self.fit(zq, plaus), outside
+            misfit = -2.0 * plaus[np.arange(len(top)), top] / self.region[top]
+        return out, self.fit(zq, plaus), misfit
 
     def fit(self, zq: np.ndarray, plaus: np.ndarray | None) -> np.ndarray:
         """(B, d) unit rows, plausibility (B, C) or None -> (B,) best shape-and-size fit."""

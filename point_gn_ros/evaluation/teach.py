@@ -13,8 +13,9 @@ other scans are classified by the enlarged bank. Reported per draw and as mean +
                         scaled by their pooled spread), among the data set's classes only
   open set              before the draw's last class is taught (class d mod C of draw d is
                         left out), the other classes' queries against the left-out class's
-                        scans: AUROC of the shape-and-size fit (bank/taught.py) and of the top
-                        probability, and the default rule's reject rates of both
+                        scans: AUROC of the shape-and-size fit (bank/taught.py), of the
+                        answer's size misfit and of the top probability, and the default
+                        rule's reject rates of both
 """
 
 from __future__ import annotations
@@ -141,6 +142,8 @@ def _open_set(bf: BankFile, class_names: list[str], labels: np.ndarray, features
            'auroc_top_probability': auroc(-res.scores[is_unseen], -res.scores[~is_unseen])}
     if res.fit is not None:
         out['auroc_fit'] = auroc(-res.fit[is_unseen], -res.fit[~is_unseen])
+    if res.size_misfit is not None:
+        out['auroc_size'] = auroc(res.size_misfit[is_unseen], res.size_misfit[~is_unseen])
     rejected = (res.labels < 0) | vol[rows]
     out['unseen_rejected'] = float(rejected[is_unseen].mean())
     out['taught_rejected'] = float(rejected[~is_unseen].mean())

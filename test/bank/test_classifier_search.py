@@ -10,7 +10,7 @@ import torch
 
 from point_gn_ros.bank.classifier import Classifier, INDEX_MIN_ENTRIES, make_search, resolve_search
 from point_gn_ros.bank.enroll import BankFile, add_examples
-from point_gn_ros.bank.model import LOGIT_FLOOR, Head
+from point_gn_ros.bank.model import Head, LOGIT_FLOOR
 from point_gn_ros.bank.vote import CompiledHead, reference_head
 from point_gn_ros.bank.discriminant import fit_head
 from point_gn_ros.bank.index import IndexedSearch

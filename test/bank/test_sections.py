@@ -10,7 +10,7 @@ import torch
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.discriminant import fit_gate
 from point_gn_ros.bank.enroll import BankFile, add_examples, remove_class
-from point_gn_ros.bank.store import FeatureBank, to_stored, gate_arrays, gate_from_arrays
+from point_gn_ros.bank.store import FeatureBank, gate_arrays, gate_from_arrays, to_stored
 from point_gn_ros.cli import main
 from point_gn_ros.errors import BankError
 from point_gn_ros.recognizer import encode_clouds, make_encoder

@@ -99,17 +99,20 @@ def test_an_answer_outside_its_classs_size_region_is_flagged_and_the_region_wide
     layer = _layer(json.loads(json.dumps(meta)), names)
     carton_id, bin_id = 2, 3
     assert layer.region[0] == REGION_CHI2                 # built: the chi-square radius
-    assert layer.region[carton_id] == REGION_CHI2         # its examples agree with the prior
-    assert layer.region[bin_id] > 1.5 * REGION_CHI2       # widened by its own examples
+    assert layer.region[bin_id] > 1.5 * REGION_CHI2       # widened by the bin's examples,
+    assert layer.region[carton_id] == layer.region[bin_id]   # pooled over taught classes
+    alone = _layer(json.loads(json.dumps(add_taught({}, 'carton', torch.nn.functional.normalize(
+        torch.eye(4)[[2] * 5], dim=1), carton))), names)
+    assert alone.region[carton_id] == REGION_CHI2         # its examples agree with the prior
     prob = torch.tensor([[0.05, 0.05, 0.85, 0.05]])
     z = torch.nn.functional.normalize(torch.eye(4)[[2]], dim=1)
     _, _, inside = layer.apply(prob, z, carton.mean(0)[None])
     _, _, far = layer.apply(prob, z, (carton.mean(0) + np.log(100.0))[None])   # 15 m
-    assert inside.tolist() == [False] and far.tolist() == [True]
+    assert inside[0] <= 1.0 < far[0]
     assert layer.apply(prob, z, None)[2] is None          # no sizes: no size region
     # a bin-sized query answered 'carton' by the head: moved to the bin, inside its region
     p, _, flag = layer.apply(prob, z, bins.mean(0)[None])
-    assert p.argmax().item() == bin_id and flag.tolist() == [False]
+    assert p.argmax().item() == bin_id and flag[0] <= 1.0
     many = add_taught(meta, 'carton', torch.nn.functional.normalize(
         torch.eye(4)[[2] * 30], dim=1), np.repeat(carton, 6, axis=0))
     assert len(many[KEY]['carton']['sizes']) == KEPT_SIZES
@@ -153,7 +156,7 @@ def test_fewshot_bank_runs_the_teach_and_query_protocol(tmp_path: Path, capsys) 
     rep = json.loads(capsys.readouterr().out)
     summ = rep['summary']
     assert rep['metric_size'] and rep['shots'] == 3 and len(rep['per_draw']) == 2
-    for key in ('accuracy', 'built_share', 'nearest_mean', 'geometry', 'auroc_fit',
+    for key in ('accuracy', 'built_share', 'nearest_mean', 'geometry', 'auroc_fit', 'auroc_size',
                 'auroc_top_probability', 'unseen_rejected', 'taught_rejected',
                 'volume_rejected'):
         assert 0.0 <= summ[key]['mean'] <= 1.0, key
@@ -229,3 +232,37 @@ def test_node_enrollment_engine_keeps_the_recognizers_measured_sizes(tmp_path: P
                                                   size_descriptors(clouds).mean(0), atol=1e-5)
         else:
             assert 'sn' not in rec
+
+
+def test_the_classifiers_fit_rule_makes_an_answer_outside_its_size_region_unknown() -> None:
+    from point_gn_ros.bank.classifier import Classifier
+    from point_gn_ros.bank.enroll import BankFile, add_examples
+    from point_gn_ros.bank.store import FeatureBank
+    from point_gn_ros.bank.model import FeatureTransform
+    from point_gn_ros.core.config import EncoderConfig
+    from point_gn_ros.core.size import size_descriptors
+
+    dim = EncoderConfig().feature_dim
+    gen = torch.Generator().manual_seed(1)
+    raw = torch.randn(30, dim, generator=gen)
+    tf = FeatureTransform.fit(raw, 'none')
+    bank = FeatureBank(features=tf(raw), labels=torch.arange(30) % 3,
+                       class_names=['chair', 'desk', 'lamp'], config=EncoderConfig(),
+                       transform=tf, gamma=10.0)
+    rng = np.random.default_rng(5)
+    cartons = [_box(rng, (0.1, 0.06, 0.15), 400) for _ in range(5)]
+    feats = torch.randn(1, dim, generator=gen) + 0.05 * torch.randn(5, dim, generator=gen)
+    taught = add_examples(BankFile.of(bank, 'float32'), feats, 'carton',
+                          sizes=size_descriptors(cartons)).file.bank
+    query = feats[:2]
+    at_size = size_descriptors(cartons[:2])
+    ten_times = size_descriptors([c * 10 for c in cartons[:2]])
+    ruled = Classifier(taught, fit_threshold=-5.0)        # a fit rule that never fires itself
+    carton = taught.class_names.index('carton')
+    res = ruled.classify(query, top_k=1, sizes=at_size)
+    assert (res.labels == carton).all() and (res.size_misfit <= 1).all()
+    res = ruled.classify(query, top_k=1, sizes=ten_times)
+    assert (res.labels == -1).all() and (res.size_misfit > 1).all()
+    # no fit rule: the same answers stand, the misfit still reported
+    res = Classifier(taught).classify(query, top_k=1, sizes=ten_times)
+    assert (res.labels >= 0).all() and (res.size_misfit > 1).all()

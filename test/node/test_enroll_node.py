@@ -262,7 +262,10 @@ def test_enroll_predict_save_restart_forget(harness: Harness, tiny_bank: Path, t
 
 def test_cloud_route_capture_and_guard_rails(harness: Harness, tiny_bank: Path, tmp_path: Path,
                                             sofa) -> None:  # noqa: ANN001
-    node = _start(tiny_bank, tmp_path / 'node.log', enroll_class=NEW, min_examples_per_class=3)
+    # The scans are unit-sphere ModelNet40 objects scaled 0.4-0.8 at random: no metric meaning,
+    # so no size evidence (a taught class's size region is test_size.py's subject).
+    node = _start(tiny_bank, tmp_path / 'node.log', enroll_class=NEW, min_examples_per_class=3,
+                  metric_size=False)
     c = None
     try:
         c = Client(harness, node)
