@@ -10,14 +10,12 @@ The bank stores its rows in the vote's space (bank/store.py), so new examples go
 bank's own transform (and head whitening); what depends on the entries is refreshed by
 `refit()` (bank/refit.py), the single place that knows which knobs depend on them.
 
-Metadata added (JSON, in the bank file):
+State added: the FeatureBank fields `enrollments` (the log, `Enrollment` entries, the last
+MAX_HISTORY (500) only), `enrollments_compacted` (older entries dropped from it) and
+`augmented_entries` ({class: entries beyond one per example}, augmented adds only: the
+examples of a class = its entries minus this, see `example_counts`); in the file they are
+metadata keys of the same names. Metadata added (JSON, in the bank file):
   bank_version   int, +1 per add/remove (0 = as built)
-  enrollments    list of {version, action, class, count, time, source, near_duplicates}
-                 (+ examples, augment when an add stored each example in k frames); the
-                 last MAX_HISTORY (500) only
-  enrollments_compacted  how many older entries were dropped from `enrollments`
-  augmented_entries  {class: entries beyond one per example} (augmented adds only; the
-                 examples of a class = its entries minus this, see `example_counts`)
   refit          how gamma / calibration were last decided {version, gamma, calibration, ...}
   taught         {class: {n, mean, [sn, smean, sm2]}}: each enrolled class's prototype and
                  measured size (bank/taught.py)
@@ -40,8 +38,8 @@ from point_gn_ros.bank.discriminant import (ScatterStats, vote_to_z, wide_means_
                                             wide_means_remove)
 from point_gn_ros.bank.refit import (DUPLICATE_COSINE, RefitPolicy, copy_meta, example_counts,
                                      refit)
-from point_gn_ros.bank.store import (FeatureBank, append_rows, class_name_problem, quantized,
-                                     read_npz_bounded, unpack_int4)
+from point_gn_ros.bank.store import (Enrollment, FeatureBank, append_rows, class_name_problem,
+                                     quantized, read_npz_bounded, unpack_int4)
 from point_gn_ros.bank.taught import add_taught, drop_taught
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.core.size import SIZE_DIM
@@ -388,15 +386,15 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
     feats = append_rows(bank.features, new)       # bank/store.py: no copy of the bank rows
     labels = torch.cat([bank.labels, torch.full((len(new),), cid, dtype=torch.int64)])
     extra = {} if k == 1 else {'examples': len(new) // k, 'augment': augment}
-    meta = _log(bank, 'add', class_name, len(new), source, when, near_duplicates=n_dups,
-                **extra)
+    meta, history = _log(bank, 'add', class_name, len(new), source, when,
+                         near_duplicates=n_dups, **extra)
     if sizes is not None and np.shape(sizes) != (len(new) // k, SIZE_DIM):
         raise EnrollError(f'sizes must be ({len(new) // k}, {SIZE_DIM}), got {np.shape(sizes)}')
     meta = add_taught(meta, class_name, z_new[::k], sizes)
     if k > 1:
-        aug = dict(meta.get('augmented_entries', {}))
+        aug = dict(bank.augmented_entries)
         aug[class_name] = int(aug.get(class_name, 0)) + len(new) - len(new) // k
-        meta['augmented_entries'] = aug
+        history['augmented_entries'] = aug
     # z of the new rows as a full refit would recover them from the stored values.
     stats = None if bf.stats is None else bf.stats.add(vote_to_z(new, bank.head), cid)
     head = bank.head
@@ -404,7 +402,7 @@ def add_examples(bf: BankFile, features: torch.Tensor, class_name: str,
         head = wide_means_add(head, bank.transform.standardized(features.float().cpu()), cid,
                               int((bank.labels == cid).sum()))
     out, moved = refit(replace(bank, features=feats, labels=labels, class_names=names,
-                               meta=meta, path=None, head=head), policy, stats)
+                               meta=meta, path=None, head=head, **history), policy, stats)
     stored = np.concatenate([bf.stored, stored_new])
     return EnrollResult(refitted_file(out, stored, moved, stats), 'add', class_name,
                         len(new), new_class, tuple(dups), n_dups, out.meta['refit'], augment,
@@ -432,15 +430,16 @@ def remove_class(bf: BankFile, class_name: str, source: str = 'api',
     labels = labels - (labels > cid).long()
     names = [n for n in bank.class_names if n != class_name]
     removed = int((~keep).sum())
-    meta = drop_taught(_log(bank, 'remove', class_name, removed, source, when), class_name)
-    if class_name in meta.get('augmented_entries', {}):
-        meta['augmented_entries'] = {c: n for c, n in meta['augmented_entries'].items()
-                                     if c != class_name}
+    meta, history = _log(bank, 'remove', class_name, removed, source, when)
+    meta = drop_taught(meta, class_name)
+    history['augmented_entries'] = {c: n for c, n in bank.augmented_entries.items()
+                                    if c != class_name}
     stats = None if bf.stats is None else bf.stats.remove(
         vote_to_z(bank.features[~keep], bank.head), cid)
     out, moved = refit(replace(bank, features=bank.features[keep], labels=labels,
                                class_names=names, meta=meta, path=None,
-                               head=wide_means_remove(bank.head, cid)), policy, stats)
+                               head=wide_means_remove(bank.head, cid), **history), policy,
+                       stats)
     return EnrollResult(refitted_file(out, bf.stored[keep.numpy()], moved, stats),
                         'remove', class_name, removed, False, (), 0, out.meta['refit'])
 
@@ -506,17 +505,20 @@ def _clipped(text: str, limit: int) -> str:
 
 
 def _log(bank: FeatureBank, action: str, class_name: str, count: int, source: str,
-         when: datetime | None, **extra: Any) -> dict[str, Any]:
+         when: datetime | None, near_duplicates: int = 0, examples: int | None = None,
+         augment: str | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """-> the next version's metadata, and its history fields (FeatureBank.enrollments...)."""
     meta = copy_meta(bank.meta)
     version = int(meta.get('bank_version', 0)) + 1
     meta['bank_version'] = version
-    entry = {'version': version, 'action': action, 'class': class_name, 'count': int(count),
-             'time': (when or datetime.now(UTC)).isoformat(timespec='seconds'),
-             'source': _clipped(str(source), MAX_SOURCE_CHARS), **extra}
-    history = [*meta.get('enrollments', []), entry]
+    entry = Enrollment(version, action, class_name, int(count),
+                       (when or datetime.now(UTC)).isoformat(timespec='seconds'),
+                       _clipped(str(source), MAX_SOURCE_CHARS), int(near_duplicates),
+                       examples, augment)
+    history = (*bank.enrollments, entry)
+    compacted = bank.enrollments_compacted
     if len(history) > MAX_HISTORY:         # compacted: the oldest entries are counted
-        meta['enrollments_compacted'] = (int(meta.get('enrollments_compacted', 0))
-                                         + len(history) - MAX_HISTORY)
+        compacted += len(history) - MAX_HISTORY
         history = history[-MAX_HISTORY:]
-    meta['enrollments'] = history
-    return meta
+    return meta, {'enrollments': history, 'enrollments_compacted': compacted,
+                  'augmented_entries': dict(bank.augmented_entries)}

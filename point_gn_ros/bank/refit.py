@@ -95,26 +95,18 @@ class RefitPolicy:
 
 
 def copy_meta(meta: dict[str, Any]) -> dict[str, Any]:
-    """A deep copy of bank metadata, but the `enrollments` history's entries are shared.
-
-    History entries are never changed once written (bank/enroll.py): copying them on every
-    version would make n enrollments cost O(n^2).
-    """
-    history = meta.get('enrollments')
-    out = copy.deepcopy({k: v for k, v in meta.items() if k != 'enrollments'})
-    if history is not None:
-        out['enrollments'] = list(history)
-    return out
+    """A deep copy of bank metadata (the enrollment log is a FeatureBank field, not in it)."""
+    return copy.deepcopy(meta)
 
 
 def example_counts(bank: FeatureBank) -> torch.Tensor:
     """Examples per class (C,) int64: entries, less the extra frames of augmented enrollments.
 
     An example enrolled with augmentation (core/augment.py) is k entries; the bank's meta
-    `augmented_entries` {class: entries beyond one per example} records the difference.
+    `augmented_entries` field {class: entries beyond one per example} records the difference.
     """
     counts = torch.bincount(bank.labels, minlength=bank.num_classes)
-    for name, extra in bank.meta.get('augmented_entries', {}).items():
+    for name, extra in bank.augmented_entries.items():
         if name in bank.class_names:
             counts[bank.class_names.index(name)] -= int(extra)
     return counts
@@ -130,7 +122,7 @@ def example_groups(bank: FeatureBank) -> np.ndarray | None:
     its last removal in log order. CV (`refit`) keeps a group in one fold: a held-out example
     must not be matched by its own mirror. A class whose log does not add up stays ungrouped.
     """
-    aug = bank.meta.get('augmented_entries', {})
+    aug = bank.augmented_entries
     if not aug:
         return None
     labels = bank.labels.numpy()
@@ -140,10 +132,10 @@ def example_groups(bank: FeatureBank) -> np.ndarray | None:
             continue
         rows = np.flatnonzero(labels == bank.class_names.index(name))
         adds: list[tuple[int, int]] = []
-        for e in bank.meta.get('enrollments', []):
-            if e.get('class') == name:
-                adds = [] if e.get('action') == 'remove' else [
-                    *adds, (int(e['count']), variants_per_example(e.get('augment', 'none')))]
+        for e in bank.enrollments:
+            if e.class_name == name:
+                adds = [] if e.action == 'remove' else [
+                    *adds, (e.count, variants_per_example(e.augment or 'none'))]
         pos = len(rows) - sum(n for n, _ in adds)
         if pos < 0:
             continue

@@ -796,6 +796,54 @@ def default_bank_path() -> Path:
     return here
 
 
+@dataclass(frozen=True)
+class Enrollment:
+    """One entry of a bank's enrollment log; never changed once written.
+
+    count: the entries added or removed (an augmented add: its frames, `examples` examples
+    stored in `augment`'s frames each); extra: keys of the file's entry this type does not
+    name, kept as they are.
+    """
+
+    version: int
+    action: str                     # 'add' or 'remove'
+    class_name: str
+    count: int
+    time: str                       # ISO 8601, seconds
+    source: str
+    near_duplicates: int = 0
+    examples: int | None = None
+    augment: str | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    _KEYS = ('version', 'action', 'class', 'count', 'time', 'source', 'near_duplicates',
+             'examples', 'augment')
+
+    def to_json(self) -> dict[str, Any]:
+        out = {'version': self.version, 'action': self.action, 'class': self.class_name,
+               'count': self.count, 'time': self.time, 'source': self.source,
+               'near_duplicates': self.near_duplicates}
+        if self.examples is not None:
+            out.update(examples=self.examples, augment=self.augment)
+        return {**out, **self.extra}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> 'Enrollment':
+        """Raises ValueError, KeyError or TypeError on an entry that is not one."""
+        examples = d.get('examples')
+        return cls(int(d['version']), str(d['action']), str(d['class']), int(d['count']),
+                   str(d.get('time', '')), str(d.get('source', '')),
+                   int(d.get('near_duplicates') or 0),
+                   None if examples is None else int(examples),
+                   None if d.get('augment') is None else str(d['augment']),
+                   {k: v for k, v in d.items() if k not in cls._KEYS})
+
+
+# The enrollment state a bank file keeps in its metadata under these keys; a loaded bank holds
+# it as FeatureBank fields instead.
+_HISTORY_KEYS = ('enrollments', 'enrollments_compacted', 'augmented_entries')
+
+
 @dataclass
 class FeatureBank:
     """Bank features, labels, transform and metadata (see module docstring)."""
@@ -812,6 +860,12 @@ class FeatureBank:
     views: 'FeatureBank | None' = None  # the single-view scan section (same classes)
     gate: Gate | None = None          # with views: p(query is a scan), mixes the sections
     objects: ObjectTest | None = None  # with views: the object test of taught classes
+    # What enrollment did (bank/enroll.py): its log (the last MAX_HISTORY entries, oldest
+    # first), how many older entries were dropped from it, and per class the entries beyond
+    # one per example that augmented adds stored.
+    enrollments: tuple[Enrollment, ...] = ()
+    enrollments_compacted: int = 0
+    augmented_entries: Mapping[str, int] = field(default_factory=dict)
 
     @property
     def classifier_head(self) -> Head:
@@ -888,7 +942,14 @@ class FeatureBank:
         sectioned: the file also holds a views section (format 3, like int8/int4 features);
         objects: and an object test (format 6).
         """
-        meta = dict(self.meta)
+        meta = {k: v for k, v in self.meta.items() if k not in _HISTORY_KEYS}
+        if self.enrollments:
+            meta['enrollments'] = [e.to_json() for e in self.enrollments]
+        if self.enrollments_compacted:
+            meta['enrollments_compacted'] = int(self.enrollments_compacted)
+        if self.augmented_entries:
+            meta['augmented_entries'] = {str(c): int(n)
+                                         for c, n in self.augmented_entries.items()}
         version = FORMAT_VERSION if dtype in _INTEGER_DTYPES or sectioned else PLAIN_VERSION
         head = self.classifier_head
         if head.has_ridge:
@@ -1084,9 +1145,18 @@ class FeatureBank:
         features = empty_rows(*feats.shape)
         features.copy_(torch.from_numpy(feats))
         features.div_(features.norm(dim=1, keepdim=True).clamp_min(1e-12))
+        try:
+            history = dict(
+                enrollments=tuple(Enrollment.from_json(e) for e in meta.get('enrollments', [])),
+                enrollments_compacted=int(meta.get('enrollments_compacted', 0)),
+                augmented_entries={str(c): int(n)
+                                   for c, n in meta.get('augmented_entries', {}).items()})
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise bad(f'enrollment history is malformed ({exc})') from None
+        meta = {k: v for k, v in meta.items() if k not in _HISTORY_KEYS}
         return _ridge_fitted(cls(features=features, labels=torch.from_numpy(labels.astype(
             np.int64)), class_names=class_names, config=cfg, transform=tf, gamma=gamma,
-            meta=meta, path=path, head=head))
+            meta=meta, path=path, head=head, **history))
 
 
 def _ridge_fitted(section: FeatureBank) -> FeatureBank:

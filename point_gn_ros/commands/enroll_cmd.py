@@ -229,11 +229,11 @@ def _history(args: argparse.Namespace) -> int:
     print(f'{bank.path}: bank version {bank_version(bank)}, {len(bank)} entries, '
           f'{bank.num_classes} classes')
     print('  ' + ', '.join(f'{c} {n}' for c, n in class_counts(bank).items()))
-    for e in bank.meta.get('enrollments', []):
-        dups = f', {e["near_duplicates"]} near-duplicate(s)' if e.get('near_duplicates') else ''
-        aug = f' ({e["examples"]} examples, {e["augment"]})' if e.get('augment') else ''
-        print(f'  v{e["version"]} {e["time"]} {e["action"]} {e["class"]!r} x{e["count"]}'
-              f'{aug}{dups} ({e["source"]})')
+    for e in bank.enrollments:
+        dups = f', {e.near_duplicates} near-duplicate(s)' if e.near_duplicates else ''
+        aug = f' ({e.examples} examples, {e.augment})' if e.augment else ''
+        print(f'  v{e.version} {e.time} {e.action} {e.class_name!r} x{e.count}'
+              f'{aug}{dups} ({e.source})')
     refit = bank.meta.get('refit')
     if refit:
         print(f'  last refit (v{refit["version"]}): gamma {refit["gamma"]:g} '

@@ -98,9 +98,9 @@ def test_2200_enrollments_then_save_and_load(tmp_path: Path) -> None:
         bf = add_examples(bf, _one(i), names[i % 4], source, policy).file
     meta = bf.bank.meta
     assert meta['bank_version'] == 2200
-    assert len(meta['enrollments']) == MAX_HISTORY
-    assert meta['enrollments_compacted'] == 2200 - MAX_HISTORY
-    assert meta['enrollments'][-1]['version'] == 2200
+    assert len(bf.bank.enrollments) == MAX_HISTORY
+    assert bf.bank.enrollments_compacted == 2200 - MAX_HISTORY
+    assert bf.bank.enrollments[-1].version == 2200
     back = FeatureBank.load(save_atomic(bf, tmp_path / 'b.npz'))
     assert len(back) == 20 + 2200 and back.meta['bank_version'] == 2200
     assert len(json.dumps(back.meta)) < 500_000

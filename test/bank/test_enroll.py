@@ -68,7 +68,7 @@ def test_add_new_class_is_predicted_and_old_bank_untouched() -> None:
     assert bank_version(bf.bank) == 0
     pred = Classifier(res.bank).classify(_queries(new_centre, 20, 2)).labels
     assert (pred == 4).all()
-    log = res.bank.meta['enrollments']
+    log = [e.to_json() for e in res.bank.enrollments]
     assert log == [{'version': 1, 'action': 'add', 'class': 'mug', 'count': 5,
                     'time': log[0]['time'], 'source': 'test', 'near_duplicates': 0}]
 
@@ -154,7 +154,7 @@ def test_save_load_is_bit_exact(tmp_path: Path, dtype: str) -> None:
     assert np.array_equal(back.stored, res.file.stored)
     assert back.bank.meta['stored_dtype'] == dtype
     assert back.stored.dtype == (np.int8 if dtype == 'int4' else dtype)
-    assert back.bank.meta['bank_version'] == 2 and len(back.bank.meta['enrollments']) == 2
+    assert back.bank.meta['bank_version'] == 2 and len(back.bank.enrollments) == 2
     q = torch.randn(50, D)
     a, b = Classifier(res.bank).classify(q), Classifier(back.bank).classify(q)
     assert np.array_equal(a.labels, b.labels) and np.array_equal(a.scores, b.scores)
@@ -228,7 +228,7 @@ def test_live_bank_readers_see_whole_versions() -> None:
     assert not bad
     final = live.current()
     assert final.version == 16 + 2 * 2                     # every write is a version
-    assert len(final.bank.meta['enrollments']) == final.version
+    assert len(final.bank.enrollments) == final.version
     assert len(seen) > 1
 
 
