@@ -418,7 +418,7 @@ def _object_shift(bank: FeatureBank) -> ObjectShift | None:
     views = bank.views
     if views is None or bank.objects is None:
         return None
-    built = set(bank.meta.get('provenance', {}).get('per_class', bank.class_names))
+    built = bank.built_classes
     removed = {e.class_name for e in bank.enrollments if e.action == 'remove'}
     return bank.objects.shift(bank.class_names, built, removed, views.transform, views.head,
                               example_counts(views))

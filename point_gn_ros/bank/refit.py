@@ -290,7 +290,7 @@ def enrolled_debias(head: Head, n: torch.Tensor, present: np.ndarray, bank: Feat
 
 def _taught(bank: FeatureBank, meta: dict, present: np.ndarray) -> np.ndarray:
     """(len(present),) bool: the classes an enrollment created (not in the build's provenance)."""
-    built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
+    built = bank.built_classes
     return np.array([bank.class_names[c] not in built for c in present], dtype=bool)
 
 

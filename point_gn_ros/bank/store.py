@@ -839,9 +839,9 @@ class Enrollment:
                    {k: v for k, v in d.items() if k not in cls._KEYS})
 
 
-# The enrollment state a bank file keeps in its metadata under these keys; a loaded bank holds
-# it as FeatureBank fields instead.
-_HISTORY_KEYS = ('enrollments', 'enrollments_compacted', 'augmented_entries')
+# State a bank file keeps in its metadata under these keys; a FeatureBank holds it as fields
+# of the same names instead (never in `meta`).
+_FIELD_KEYS = ('provenance', 'enrollments', 'enrollments_compacted', 'augmented_entries')
 
 
 @dataclass
@@ -866,6 +866,48 @@ class FeatureBank:
     enrollments: tuple[Enrollment, ...] = ()
     enrollments_compacted: int = 0
     augmented_entries: Mapping[str, int] = field(default_factory=dict)
+    # How the build made it: dataset, format, split, count, per_class {class: entries},
+    # created (bank/builder.py); empty for banks not built from a dataset.
+    provenance: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        """State given as metadata keys (a build's or a caller's `meta`) becomes the fields.
+
+        A key in `meta` is always meant (a bank never keeps one there): it replaces the field.
+        """
+        if not any(k in self.meta for k in _FIELD_KEYS):
+            return
+        meta = dict(self.meta)
+        if 'provenance' in meta:
+            self.provenance = dict(meta.pop('provenance'))
+        if 'enrollments' in meta:
+            self.enrollments = tuple(e if isinstance(e, Enrollment) else Enrollment.from_json(e)
+                                     for e in meta.pop('enrollments'))
+        if 'enrollments_compacted' in meta:
+            self.enrollments_compacted = int(meta.pop('enrollments_compacted'))
+        if 'augmented_entries' in meta:
+            self.augmented_entries = {str(c): int(n)
+                                      for c, n in meta.pop('augmented_entries').items()}
+        self.meta = meta
+
+    @property
+    def built_classes(self) -> set[str]:
+        """The classes the build made (all of them when it recorded none)."""
+        return set(self.provenance.get('per_class', self.class_names))
+
+    def file_meta(self) -> dict[str, Any]:
+        """The metadata as the bank file holds it: `meta` with the fields' keys."""
+        meta = dict(self.meta)
+        if self.provenance:
+            meta['provenance'] = dict(self.provenance)
+        if self.enrollments:
+            meta['enrollments'] = [e.to_json() for e in self.enrollments]
+        if self.enrollments_compacted:
+            meta['enrollments_compacted'] = int(self.enrollments_compacted)
+        if self.augmented_entries:
+            meta['augmented_entries'] = {str(c): int(n)
+                                         for c, n in self.augmented_entries.items()}
+        return meta
 
     @property
     def classifier_head(self) -> Head:
@@ -880,7 +922,7 @@ class FeatureBank:
         return int(self.features.shape[0])
 
     def summary(self) -> str:
-        prov = self.meta.get('provenance', {})
+        prov = self.provenance
         src = prov.get('dataset', '?')
         split = prov.get('split', '?')
         head = self.classifier_head
@@ -942,14 +984,7 @@ class FeatureBank:
         sectioned: the file also holds a views section (format 3, like int8/int4 features);
         objects: and an object test (format 6).
         """
-        meta = {k: v for k, v in self.meta.items() if k not in _HISTORY_KEYS}
-        if self.enrollments:
-            meta['enrollments'] = [e.to_json() for e in self.enrollments]
-        if self.enrollments_compacted:
-            meta['enrollments_compacted'] = int(self.enrollments_compacted)
-        if self.augmented_entries:
-            meta['augmented_entries'] = {str(c): int(n)
-                                         for c, n in self.augmented_entries.items()}
+        meta = self.file_meta()
         version = FORMAT_VERSION if dtype in _INTEGER_DTYPES or sectioned else PLAIN_VERSION
         head = self.classifier_head
         if head.has_ridge:
@@ -1145,18 +1180,13 @@ class FeatureBank:
         features = empty_rows(*feats.shape)
         features.copy_(torch.from_numpy(feats))
         features.div_(features.norm(dim=1, keepdim=True).clamp_min(1e-12))
-        try:
-            history = dict(
-                enrollments=tuple(Enrollment.from_json(e) for e in meta.get('enrollments', [])),
-                enrollments_compacted=int(meta.get('enrollments_compacted', 0)),
-                augmented_entries={str(c): int(n)
-                                   for c, n in meta.get('augmented_entries', {}).items()})
+        try:   # the fields' keys of meta become the fields (__post_init__)
+            bank = cls(features=features, labels=torch.from_numpy(labels.astype(np.int64)),
+                       class_names=class_names, config=cfg, transform=tf, gamma=gamma,
+                       meta=meta, path=path, head=head)
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise bad(f'enrollment history is malformed ({exc})') from None
-        meta = {k: v for k, v in meta.items() if k not in _HISTORY_KEYS}
-        return _ridge_fitted(cls(features=features, labels=torch.from_numpy(labels.astype(
-            np.int64)), class_names=class_names, config=cfg, transform=tf, gamma=gamma,
-            meta=meta, path=path, head=head, **history))
+            raise bad(f'provenance or enrollment history is malformed ({exc})') from None
+        return _ridge_fitted(bank)
 
 
 def _ridge_fitted(section: FeatureBank) -> FeatureBank:

@@ -308,7 +308,7 @@ def _info(args: argparse.Namespace) -> int:
     from point_gn_ros.commands.enroll_cmd import resolve_bank
     bank = FeatureBank.load(resolve_bank(args.bank))
     if args.json:
-        print(json.dumps(bank.meta, indent=2, sort_keys=True))
+        print(json.dumps(bank.file_meta(), indent=2, sort_keys=True))
         return 0
     print(f'{bank.path}: {bank.summary()}')
     print('\n'.join(describe_selection(bank.meta)))
@@ -330,6 +330,6 @@ def _info(args: argparse.Namespace) -> int:
     path = Classifier(bank).path
     print(f'  query path (CPU): {path["head"]} head, lone queries {path["lone"]}, '
           f'{path["search"]} search')
-    prov = bank.meta.get('provenance', {})
+    prov = bank.provenance
     print(f'  created {prov.get("created", "?")}; classes: {", ".join(bank.class_names)}')
     return 0

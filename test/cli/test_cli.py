@@ -126,7 +126,7 @@ def test_scanobjectnn_bank_uses_sigma_03(tmp_path: Path) -> None:
                  '--folds', '2', '-o', str(out)]) == 0
     from point_gn_ros.bank.store import FeatureBank
     bank = FeatureBank.load(out)
-    assert bank.config.sigma == 0.3 and bank.meta['provenance']['format'] == 'scanobjectnn_h5'
+    assert bank.config.sigma == 0.3 and bank.provenance['format'] == 'scanobjectnn_h5'
     assert len(bank.class_names) == 15 and len(bank) == int(keep.sum())
 
 
