@@ -14,6 +14,7 @@ machine's waiting is not counted), random features as queries.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 import time
 
@@ -22,7 +23,18 @@ import torch
 
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.store import FeatureBank
-from search_agreement import replicated
+
+
+def replicated(bank: FeatureBank, copies: int, jitter: float) -> FeatureBank:
+    """The bank with `copies` noisy copies of every vote-space row (the first exact)."""
+    if copies <= 1:
+        return bank
+    gen = torch.Generator().manual_seed(0)
+    feats = bank.features.float()
+    noisy = [feats] + [feats + jitter * torch.randn(feats.shape, generator=gen)
+                       for _ in range(copies - 1)]
+    return replace(bank, features=torch.nn.functional.normalize(torch.cat(noisy), dim=1),
+                   labels=bank.labels.repeat(copies))
 
 
 def _median_ms(fn, repeats: int) -> float:
@@ -42,7 +54,8 @@ def main() -> None:
     p.add_argument('banks', nargs='+')
     p.add_argument('--repeats', type=int, default=30)
     p.add_argument('--replicate', type=int, default=1,
-                   help='R noisy copies of every entry (search_agreement.py --replicate)')
+                   help='R noisy copies of every entry, each but the first with Gaussian noise '
+                        'of std --jitter, renormalised (a stand-in for a large real bank)')
     p.add_argument('--jitter', type=float, default=0.02)
     p.add_argument('--search', nargs='+', default=['exact', 'indexed'],
                    choices=('auto', 'exact', 'indexed'))

@@ -67,6 +67,17 @@ def load_modelnet_subset(split: str, per_class: int, offset: int = 0
     return xyz[pick], labels[pick], list(names)
 
 
+def agreement_rows(count: int, step: int) -> np.ndarray:
+    """Rows of a split that a real-data agreement test checks: (M,) int64.
+
+    Every `step`-th of `count` (a subsample that keeps a slow test under a minute on a
+    2-core machine), or all of them with POINT_GN_FULL_AGREEMENT=1 (the full-set figures).
+    """
+    if os.environ.get('POINT_GN_FULL_AGREEMENT') == '1':
+        step = 1
+    return np.arange(0, count, step, dtype=np.int64)
+
+
 def write_npy_tree(root: Path, classes: tuple[str, ...], per_class: dict[str, int],
                    scale: float = 1.0, offset: float = 0.0) -> Path:
     """A folder-tree dataset `root/<split>/<class>/<class>_<i>.npy` of real ModelNet40 objects.

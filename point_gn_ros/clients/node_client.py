@@ -169,8 +169,8 @@ class Client:
 
     Answers are taken by a thread of their own (node/intake.py's `Intake`, as the node takes
     its input), not by the executor: rclpy's executor costs ~0.1-0.2 ms of Python a spin,
-    and a benchmark that spun it between 1,000 sends a second took ~0.3 of a CPU from the
-    node it measured (benchmarks/log, "third session of 2026-12-05"). `answers` fills while
+    and spinning it between 1,000 sends a second would take ~0.3 of a CPU from the node
+    being measured. `answers` fills while
     the caller sleeps or spins; the executor serves the other subscriptions.
     """
 

@@ -30,12 +30,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument('--extra-sigmas', type=float, nargs='+', default=[], metavar='SIGMA',
                    help='multi-scale features: also encode every cloud with these GPE sigmas '
                         'and concatenate (e.g. 0.25: +0.4 points CV on ModelNet40 at ~2x the '
-                        "encoder's cost per cloud; benchmarks/log)")
+                        "encoder's cost per cloud)")
     b.add_argument('--upsample', choices=UPSAMPLE_METHODS, default='midpoint',
                    help='how clouds with fewer points than the encoder takes are filled up: '
                         'midpoint (default: new points between neighbouring points; +2-3 '
-                        'points on single-view scans by grouped CV, benchmarks/log) or repeat '
-                        '(points repeated, as banks before this option)')
+                        'points on single-view scans by grouped CV) or repeat '
+                        '(points repeated)')
     b.add_argument('--yaw-align', action='store_true',
                    help='rotate every cloud into a canonical heading about z before encoding '
                         '(yaw-invariant bank, for upright objects seen from any side)')
@@ -54,7 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument('--dtype', choices=('float16', 'float32', 'int8', 'int4'), default='float16',
                    help='stored feature precision (default float16; int8: a quarter of '
                         'float32, cosines within ~1e-3; int4: an eighth, cosines off by ~1e-2 '
-                        'on average, no loss measured by CV on scans: benchmarks/log)')
+                        'on average, no loss measured by CV on scans)')
     b.add_argument('--matrix-dtype', choices=('float32', 'float16'), default='float32',
                    help='precision of the fitted PCA projection, whitening and wide-LDA '
                         'precision (float16: about half their bytes; the fit uses the rounded '

@@ -159,7 +159,7 @@ def resample_rows(quick: bool, repeats: int) -> list[Row]:
         t = _median_time(lambda xyz=xyz: prepare(xyz), repeats)
         rows.append(dict(section='resample', what=f'prepare() {n:,} points -> 1024',
                          value=t * 1e3, unit='ms', note='method fps'))
-    # a single-view scan's typical size (issue 9's protocol), filled up to 1024
+    # a single-view scan's typical size (core/views.py's default protocol), filled up to 1024
     scan = rng.normal(0, 1, (340, 3)).astype(np.float32)
     for upsample in ('repeat', 'midpoint'):
         prepare(scan, upsample=upsample)   # warm: first-call costs stay out of the timing

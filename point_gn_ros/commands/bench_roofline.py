@@ -95,7 +95,7 @@ def profile_rows(quick: bool, repeats: int) -> list[Row]:
     rows.append(_roofline_row('encoder, one cloud, all phases', float(best[0]), floor,
                               '1 thread, min over repeats'))
     # What batches could reach on all CPUs: this run's cloud cost and its floor, each spread
-    # over the cores' worth measured above (issue 13's 1,000 clouds/s goal).
+    # over the cores' worth measured above (against the 1,000 clouds/s goal).
     rows.append(dict(section='roofline', what=f'encoder, batched on {cpus} CPU(s): ceiling',
                      value=cores / floor, unit='clouds/s',
                      note=f"{cores:.2f} cores' worth / floor; at this run's phase times "

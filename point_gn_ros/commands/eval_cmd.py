@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='seed of the --single-view scans (default 0)')
     e.add_argument('--view-protocol', choices=('hpr', 'zbuffer'), default='hpr',
                    help="scans of --single-view: 'hpr' hidden point removal (~470 of 1,024 "
-                        "points, issue 9's protocol; default) or 'zbuffer' (round 1's harsher "
+                        "points; default) or 'zbuffer' (harsher "
                         'scans: z-buffer, dropout, range falloff, ~180 points)')
     e.add_argument('--open-set', default=None, metavar='N_OR_CLASSES',
                    help='open-set run: build BANK (or reuse it if it holds exactly these '

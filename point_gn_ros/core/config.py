@@ -10,7 +10,7 @@ from collections.abc import Mapping
 # Bump whenever the encoder's output changes for a given configuration, so that
 # banks built by an older encoder are refused instead of silently mis-matched.
 ENCODER_VERSION = 1
-# More scales multiply the encoder's cost; two were measured to help (benchmarks/log).
+# More scales multiply the encoder's cost; two help (benchmarks/RESULTS.md).
 MAX_EXTRA_SIGMAS = 3
 # How clouds with fewer points than num_points are filled up (core/sampling.py).
 UPSAMPLE_METHODS = ('repeat', 'midpoint')
@@ -32,9 +32,9 @@ class EncoderConfig:
     # FPS centres and neighbours) and the features are concatenated, sigma's first.
     extra_sigmas: tuple[float, ...] = ()
     # How a cloud of fewer than num_points points is filled up (core/sampling.py): 'repeat'
-    # (banks from before this knob) or 'midpoint' (new points between neighbours; +2-3
-    # points on single-view scans by grouped CV: benchmarks/log). Complete objects of
-    # num_points points or more are unaffected.
+    # (points repeated; the default, so a bank file without this field reads as built) or
+    # 'midpoint' (new points between neighbours; +2-3 points on single-view scans by
+    # grouped CV). Complete objects of num_points points or more are unaffected.
     upsample: str = 'repeat'
 
     def __post_init__(self) -> None:

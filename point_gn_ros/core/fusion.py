@@ -6,7 +6,7 @@ the views overlap where the object is, and their union is close to the complete 
 `fused_examples` draws from that union what the default bank holds of each of its own train
 objects: the complete cloud and k simulated single-view scans (core/views.py, evenly spread
 azimuths). An instance taught from 5 real scans then has 5 + 1 + 8 examples, and the LDA's
-estimate of its class mean is less noisy (benchmarks/log, issue 12).
+estimate of its class mean is less noisy (benchmarks/RESULTS.md, enrollment).
 
 Views in a moving frame (a camera's optical frame, the robot's base) do not overlap: their
 union would be a new object made of misplaced parts. `views_overlap` refuses such sets by

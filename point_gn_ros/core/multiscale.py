@@ -2,7 +2,7 @@
 
 The Gaussian positional encoding's sigma sets the spatial scale the features respond to;
 features of two sigmas together classify better under the discriminant head than either
-alone (benchmarks/log, "second encoder"). Each scale is a complete single-sigma encoder, so
+alone. Each scale is a complete single-sigma encoder, so
 the oracle of every scale is the naive encoder of that sigma.
 """
 

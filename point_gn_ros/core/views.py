@@ -7,13 +7,13 @@ and adds Gaussian noise. It never invents points: the result is a subset of the 
 point displaced only by the noise, and the kept indices are returned with it.
 
 Two visibility tests (`ViewConfig.visibility`):
-- 'hpr' (default, issue 9's protocol): Katz-Tal-Basri hidden point removal (SIGGRAPH 2007).
+- 'hpr' (default): Katz-Tal-Basri hidden point removal (SIGGRAPH 2007).
   Points are flipped about a sphere of radius `hpr_radius` x the farthest point's range around
   the camera; the ones on the convex hull of the flipped cloud plus the camera are visible
   (scipy's ConvexHull). A 1,024-point ModelNet40 object keeps ~340 (10-90 %: 240-475). A
   larger radius keeps more (100: ~470) but then sees through sparse convex surfaces (a
   1,024-point sphere 2 radii away keeps twice its visible cap); 30 keeps the cap alone.
-- 'zbuffer' (round 1's harsher scans, `ZBUFFER_VIEW_CONFIG`): every point is projected through
+- 'zbuffer' (harsher scans, `ZBUFFER_VIEW_CONFIG`): every point is projected through
   a pinhole at the camera; the image is cut into cells `cell` point spacings wide; a point is
   visible if no point of its cell or the 8 cells around it lies more than `depth_tol` cell
   widths in front of it. With its dropout and range falloff it keeps ~180 of 1,024 points.
@@ -40,9 +40,9 @@ _NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
 class ViewConfig:
     """How views are drawn (ranges are uniform; lengths in object radii).
 
-    Defaults (issue 9's protocol): hidden point removal from a camera 2-3 object radii away,
-    10-40 degrees above the horizon, Gaussian noise 0.5-1 % of the radius, no dropout or
-    range falloff. `ZBUFFER_VIEW_CONFIG` is round 1's harsher setting.
+    Defaults (the single-view protocol of the figures): hidden point removal from a camera
+    2-3 object radii away, 10-40 degrees above the horizon, Gaussian noise 0.5-1 % of the
+    radius, no dropout or range falloff. `ZBUFFER_VIEW_CONFIG` is a harsher setting.
     """
 
     elevation_deg: tuple[float, float] = (10.0, 40.0)

@@ -499,8 +499,8 @@ def main(args: list[str] | None = None) -> int:
             autostart(node)
         else:
             node.get_logger().info('waiting for a lifecycle manager (autostart is false)')
-        # One thread: rclpy's multi-threaded executor tripled the latency at 100 objects/s
-        # (benchmarks/log); services that wait (enrollment saves) are coroutines instead.
+        # One thread: rclpy's multi-threaded executor triples the latency at 100 objects/s;
+        # services that wait (enrollment saves) are coroutines instead.
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()

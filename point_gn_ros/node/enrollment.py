@@ -129,9 +129,8 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
     'enroll_lda_debias': (2.0, 'Share f of the mean-noise correction of a wide LDA '
                                '(bank/discriminant.py lda_noise_trace) for classes created by '
                                'enrollment: LDA bias += f tr(P Sigma) / (2 n); 0 = none; with '
-                               'enroll_steal_budget > 0, '
-                               'the most a class gets. Default 2: the train-CV choice (README, '
-                               'issue 12).',
+                               'enroll_steal_budget > 0, the most a class gets. Default 2: the '
+                               'choice of CV on the train split (README).',
                           {'floating_point_range': [FloatingPointRange(
                               from_value=0.0, to_value=MAX_SHARE, step=0.0)]}),
     'enroll_steal_budget': (0.001, 'Steal budget rho of each class created by enrollment '
@@ -472,8 +471,8 @@ class Enrollment(ManagedEntity):
     async def _finished(self, fut: Future) -> tuple[bool, str]:
         """The committer's (ok, message), awaited without holding the executor.
 
-        The node spins a single-threaded executor (a multi-threaded one tripled the
-        latency, benchmarks/log); a service that blocked on a save would stall every input
+        The node spins a single-threaded executor (a multi-threaded one triples the
+        latency); a service that blocked on a save would stall every input
         callback meanwhile, so it yields until the committer is done instead.
         """
         done = RclpyFuture(executor=self.node.executor)

@@ -6,7 +6,7 @@ the bank's metadata), none of which is ever garbage. Every few hundred messages 
 executor both stall and a handful of answers arrive late (`benchmarks/node_path_time.py` under
 a gc callback: a 90 ms pause in 900 messages). `gc.freeze()` moves what exists once the node
 is configured into a permanent generation the collector skips; what is created later
-(messages, answers, enrolled banks) is collected as before, and reference counting frees
+(messages, answers, enrolled banks) is collected normally, and reference counting frees
 frozen objects as usual. `thaw()` gives them back at cleanup, so the bank a reconfigure
 replaces can still be collected.
 """

@@ -1,12 +1,12 @@
 """Input messages taken off DDS by a thread of their own, not by the node's executor.
 
 rclpy's executor costs ~1.2 ms of Python per message it dispatches in this node (it rebuilds
-its wait set over every service, timer and subscription each time: benchmarks/log, "where
-the node's CPU goes"), so a burst of 1,000 clouds/s took more than a core before any
-encoding. The input subscriptions are therefore kept out of the executor (a callback group
-that never lets it run them) and one intake thread waits on them alone and takes every
-message as it arrives: a wait, a C deserialisation and the node's enqueue (counted, drop
-oldest), ~0.1 ms. rclpy's own `wait_for_message` takes messages the same way.
+its wait set over every service, timer and subscription each time), so a burst of 1,000
+clouds/s would take more than a core before any encoding. The input subscriptions are
+therefore kept out of the executor (a callback group that never lets it run them) and one
+intake thread waits on them alone and takes every message as it arrives: a wait, a C
+deserialisation and the node's enqueue (counted, drop oldest), ~0.1 ms. rclpy's own
+`wait_for_message` takes messages the same way.
 """
 
 from __future__ import annotations

@@ -173,7 +173,7 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                   {'integer_range': _int_range(1, 1000)}),
     'torch_threads': (1, 'Torch intra-op threads (the classifier). 1: its per-batch products '
                          'are small, and a second torch thread spins instead of working '
-                         '(benchmarks/log, node CPU per answer).',
+                         '(node CPU per answer).',
                       {'integer_range': _int_range(1, 256)}),
     'encoder_threads': (2, 'Fast-encoder worker threads (batches; a lone cloud uses a second '
                            'one only while the machine is idle); bounded on purpose so that '

@@ -49,7 +49,12 @@ def test_clouds_are_answered_while_the_executor_is_blocked(tiny_bank: Path) -> N
         assert not _intake_threads()                 # nothing taken before activate
         assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
         assert len(_intake_threads()) == 1
-        # named for the OS too, so that `top -H` tells the node's threads apart
+        # named for the OS too, so that `top -H` tells the node's threads apart (each thread
+        # names itself when it first runs: a loaded machine may take a moment to run it)
+        deadline = time.monotonic() + 10.0
+        while not {'point_gn_intake', 'point_gn_worker'} <= _os_thread_names() \
+                and time.monotonic() < deadline:
+            time.sleep(0.02)
         assert {'point_gn_intake', 'point_gn_worker'} <= _os_thread_names()
 
         # Another participant, spun by its own executor; the classifier node by none.
