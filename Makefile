@@ -55,7 +55,7 @@ fuzz: $(STAMP) $(WITH_EXTRAS)
 	$(ROS_ENV) && python -m point_gn_ros.clients.fuzz --count $(FUZZ_COUNT) --json fuzz_report.json
 
 # Rebuild the shipped default bank from ../shared (when the encoder version or the bank format
-# changes): a two-section bank (bank/sections.py), yaw-aligned, int4, standardised.
+# changes): a two-section bank (bank/classifier.py, two sections), yaw-aligned, int4, standardised.
 #   section 1: every train object complete; PCA width (512 or 640) and discriminant head chosen
 #              by 5-fold CV on the complete objects;
 #   section 2: 8 simulated single-view scans of every train object (hidden point removal, issue
@@ -67,8 +67,8 @@ fuzz: $(STAMP) $(WITH_EXTRAS)
 #   (--upsample midpoint, chosen over repeated points by grouped CV:
 #   benchmarks/log/2026-12-01.md);
 #   the scan section's LDA may read every standardised dim (--wide-lda scans; CV chose it).
-#   fitted matrices (PCA, whitening, wide-LDA precision) float16 (--matrix-dtype; bank/half.py);
-#   the object test of taught classes on the scans (bank/objects.py; format 6; 1.3 MB; the
+#   fitted matrices (PCA, whitening, wide-LDA precision) float16 (--matrix-dtype; bank/store.py, float16 matrices);
+#   the object test of taught classes on the scans (bank/model.py ObjectTest; format 6; 1.3 MB; the
 #   shipped file got it by tools/attach_object_test.py, every other array as it was).
 # 20.4 MB. ~15 min on 2 cores the first time (encoding 88,587 clouds); CACHE=DIR reuses them.
 CACHE ?=

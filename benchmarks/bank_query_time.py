@@ -1,7 +1,7 @@
 """Classifier cost of banks: file size, load time, bytes in memory, a lone query and a batch.
 
 What a bigger (sensor-realistic) bank costs the node per object, without the node: for each
-bank search (exact: every entry; indexed: bank/search.py's two-stage search, built when the
+bank search (exact: every entry; indexed: bank/index.py's two-stage search, built when the
 Classifier is made) the build time (process CPU), the classifier's time per query at batch 1
 (a lone query: the exact search reads the whole bank) and at batch 16 (the node's
 micro-batches), median thread CPU time over repeats with one torch thread (so a loaded

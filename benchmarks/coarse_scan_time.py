@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from point_gn_ros.bank.index_basis import pack_codes
+from point_gn_ros.bank.index import pack_codes
 from point_gn_ros.core import kernels
 
 

@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--lda-debias', type=float, default=0.0,
                    help='node parameter enroll_lda_debias (wide-LDA banks)')
     p.add_argument('--steal-budget', type=float, default=0.0,
-                   help='node parameter enroll_steal_budget (bank/debias.py)')
+                   help='node parameter enroll_steal_budget (bank/discriminant.py)')
     p.add_argument('--json', default=None)
     args = p.parse_args(argv)
 

@@ -1,4 +1,4 @@
-"""What the object test of taught classes (bank/objects.py) costs a query, lone and batched.
+"""What the object test of taught classes (bank/model.py) costs a query, lone and batched.
 
 The shipped bank with one class taught from 5 train scans, classified with and without the
 test (`Classifier(object_test=...)`), one torch thread, twice each in turn (a noisy shared box).
@@ -17,8 +17,9 @@ import time
 import numpy as np
 import torch
 
-from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples
+from point_gn_ros.bank.classifier import Classifier, _object_shift
+from point_gn_ros.bank.enroll import BankFile, add_examples
+from point_gn_ros.bank.refit import RefitPolicy
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f'{name} the test: lone {lone:.3f} ms a query, batch of {len(q)} {batch:.3f} ms a '
               f'query')
     t = time.perf_counter()
-    taught.objects.shift_for(taught)
+    _object_shift(taught)
     print(f'building the shift of a bank version: {1e3 * (time.perf_counter() - t):.1f} ms')
     return 0
 

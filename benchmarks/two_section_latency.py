@@ -4,8 +4,8 @@
 whose gate needs both sections; with and without the helper thread that evaluates the scan
 section (bank/classifier.py). `--case scans`: simulated single-view scans the gate sends to
 the scan section alone; with and without the coarse pass split over the helper thread
-(bank/search.py, `SPLIT_MIN_ROWS`). `--compare bits` instead compares the scan section's
-index at 4-bit and 8-bit coarse codes (bank/index_basis.py `COARSE_BITS`), both with the
+(bank/index.py, `SPLIT_MIN_ROWS`). `--compare bits` instead compares the scan section's
+index at 4-bit and 8-bit coarse codes (bank/index.py `COARSE_BITS`), both with the
 helper thread. `--case complete --compare nibbles`: complete objects the gate sends to the
 complete section alone, its exact scan from 4-bit nibbles (kernels.packed_dots_i4) against
 its int8 codes. `--gap-ms G` idles G ms before each query, as between a sensor's objects.
@@ -31,9 +31,9 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     import point_gn_ros.bank.classifier as clf_mod
-    import point_gn_ros.bank.search as search_mod
-    from point_gn_ros.bank.lone import LoneSection
-    from point_gn_ros.bank.search import IndexedSearch
+    import point_gn_ros.bank.index as search_mod
+    from point_gn_ros.bank.index import IndexedSearch
+    from point_gn_ros.bank.vote import CompiledHead
     from point_gn_ros.clients.node_client import load_demo_objects, place_in_sensor_frame
     from point_gn_ros.recognizer import Recognizer
 
@@ -55,10 +55,12 @@ def main() -> None:
         for mode, bits in zip(modes, (4, 8), strict=True):
             views.search = IndexedSearch(views.features, views.labels, views.bank.num_classes,
                                          code_bits=bits)
-            searches[mode] = (views.search, LoneSection.build(views))
+            searches[mode] = (views.search, CompiledHead.build(
+                views.transform, views.head, views.bank.num_classes, views.search))
     elif args.compare == 'nibbles':
         modes = ('nibbles', 'int8 codes')
-        lone, packed = rec.classifier.lone, rec.classifier.lone.packed
+        search = rec.classifier.search
+        packed = search._packed
     else:
         modes = ('helper thread', 'one thread')
     times: dict[str, list[float]] = {m: [] for m in modes}
@@ -67,9 +69,9 @@ def main() -> None:
     for _ in range(args.passes):
         for mode in modes:
             if args.compare == 'bits':
-                views.search, views.lone = searches[mode]
+                views.search, views.compiled_head = searches[mode]
             elif args.compare == 'nibbles':
-                lone.packed = packed if mode == 'nibbles' else None
+                search._packed = packed if mode == 'nibbles' else None
             else:
                 on = mode == 'helper thread'
                 clf_mod.helper_thread = helper if on else (lambda: None)

@@ -30,6 +30,7 @@ from point_gn_ros.datasets import open_dataset
 from point_gn_ros.evaluation.metrics import accuracy_report
 from point_gn_ros.evaluation.openset import KnownSubset, choose_known, open_set_report
 from point_gn_ros.recognizer import encode_clouds, make_encoder
+from point_gn_ros.bank.vote import ExactSearch, reference_head
 
 
 def _figures(true: np.ndarray, pred: np.ndarray, names: list[str]) -> dict:
@@ -127,7 +128,8 @@ def main() -> None:
     result.update(selection={k: v for k, v in sel.items() if k != 'table'}, head=head,
                   test_head=_figures(y_test, res.labels, names))
     tf, vhead, vfeats, vrow = _vote_baseline(bank, f_train, y_train)
-    vote_pred = vhead.evaluate(tf(f_test), vfeats, bank.labels, 40)[0].argmax(1).numpy()
+    vote_pred = reference_head(vhead, tf(f_test), ExactSearch(vfeats, bank.labels, 40)
+                               )[0].argmax(1).numpy()
     result['test_vote'] = {**_figures(y_test, vote_pred, names), 'cv': vrow}
     print(f'HEAD test OA {100 * result["test_head"]["accuracy"]:.2f} % mAcc '
           f'{100 * result["test_head"]["mean_class_accuracy"]:.2f} %; plain vote (gamma '
@@ -139,7 +141,8 @@ def main() -> None:
         f_yaw = _encode_yawed(test, enc, 0, cache, f'{cfg.yaw_align}_{cfg.sigma}_{cfg.k}')
         result['yawed_test_head'] = _figures(y_test, clf.classify(f_yaw, top_k=1).labels,
                                              names)
-        vp = vhead.evaluate(tf(f_yaw), vfeats, bank.labels, 40)[0].argmax(1).numpy()
+        vp = reference_head(vhead, tf(f_yaw), ExactSearch(vfeats, bank.labels, 40)
+                            )[0].argmax(1).numpy()
         result['yawed_test_vote'] = _figures(y_test, vp, names)
         print(f'random-yaw test: head {json.dumps(result["yawed_test_head"])}, vote '
               f'{json.dumps(result["yawed_test_vote"])}')

@@ -34,9 +34,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from point_gn_ros.bank.head import CovarianceFit, log_vote_shares_grid
+from point_gn_ros.bank.discriminant import CovarianceFit
+from point_gn_ros.bank.vote import log_vote_shares
 from point_gn_ros.bank.selection import stratified_folds
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.sampling import canonical_yaw, normalize, resample
 from point_gn_ros.datasets import open_dataset
@@ -165,8 +166,8 @@ def cv(orig: torch.Tensor, copies: list[torch.Tensor], labels: np.ndarray, mode:
             u_b = quantize(torch.nn.functional.normalize(fit.whitened(c_bank, a), dim=1),
                            levels)
             u_v = torch.nn.functional.normalize(fit.whitened(c_val, a), dim=1)
-            for g, lv in zip(gammas, log_vote_shares_grid(u_v @ u_b.T, bank_y, 40, gammas),
-                             strict=True):
+            for g in gammas:
+                lv = log_vote_shares(u_v @ u_b.T, bank_y, 40, g)
                 votes[(a, g)][vi] = lv
     best = (-1.0, None, None)
     for a, g, la, w in grid:

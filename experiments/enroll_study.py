@@ -37,7 +37,8 @@ import time
 import numpy as np
 import torch
 
-from point_gn_ros.bank.enroll import BankFile, RefitPolicy
+from point_gn_ros.bank.enroll import BankFile
+from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.core.augment import AUGMENTS
 from point_gn_ros.core.config import ENCODER_VERSION
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="share of a wide LDA's mean-noise correction for the enrolled classes "
                         '(RefitPolicy.lda_debias; chosen by experiments/instance_cv.py --debias)')
     p.add_argument('--steal-budget', type=float, default=0.0, metavar='RHO',
-                   help='RefitPolicy.lda_steal_budget (bank/debias.py; chosen by '
+                   help='RefitPolicy.lda_steal_budget (bank/discriminant.py; chosen by '
                         'experiments/instance_cv.py --budgets)')
     p.add_argument('--cv-augment', action='store_true',
                    help='also choose --augment by leave-one-scan-out CV on the enrolled scans '
@@ -197,7 +198,6 @@ def study(args: argparse.Namespace, bf: BankFile, encoder) -> dict:
         queries.append(arrays[f'query_{c}'])
         query_labels += [cid] * len(arrays[f'query_{c}'])
     t = time.perf_counter()
-    assert live.wait_refit(600), 'the background ridge refit did not finish'
     ridge_wait_s = time.perf_counter() - t      # a kernel ridge term's full refit (live.py)
     snap = live.current()
     q_pred = snap.model.classifier.classify(torch.cat(queries)).labels

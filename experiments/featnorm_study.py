@@ -38,7 +38,7 @@ import torch
 
 from point_gn_ros.bank import selection
 from point_gn_ros.bank.builder import encode_dataset
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.core.sampling import rotate_z

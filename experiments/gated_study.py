@@ -19,15 +19,16 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.builder import encode_dataset
-from point_gn_ros.bank.gate import Gate
-from point_gn_ros.bank.head import fit_head
+from point_gn_ros.bank.discriminant import fit_head
+from point_gn_ros.bank.discriminant import fit_gate
 from point_gn_ros.bank.selection import stratified_folds
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.datasets.views import ViewsDataset
 from point_gn_ros.recognizer import make_encoder
+from point_gn_ros.bank.vote import ExactSearch, reference_head
 
 
 def expert(feats, labels, tr, c, dims, gamma, alpha, lda_alpha, w, t):  # noqa: ANN001, ANN201
@@ -37,7 +38,7 @@ def expert(feats, labels, tr, c, dims, gamma, alpha, lda_alpha, w, t):  # noqa: 
     lab = torch.from_numpy(labels[tr])
     head = fit_head(z, lab, c, gamma, alpha, lda_alpha, w, t)
     u = head.vote_space(z)
-    return lambda q: head.evaluate(tf(q), u, lab, c)
+    return lambda q: reference_head(head, tf(q), ExactSearch(u, lab, c))
 
 
 def main() -> None:
@@ -76,7 +77,7 @@ def main() -> None:
         comp = expert(feats, labels, trc, c, args.complete_dims, 80.0, 0.1, 0.02, 0.2, 3.98)
         p_c = comp(q)[0]
         put('complete expert alone', va, p_c.argmax(1))
-        g = Gate.fit(feats[tr], scan[tr]).scan_probability(q)
+        g = fit_gate(feats[tr], scan[tr]).scan_probability(q)
         gate_right[va] = (g.numpy() > 0.5) == scan[va]
         for sd in args.scan_dims:
             trs = tr if args.scan_includes_complete else tr[scan[tr]]

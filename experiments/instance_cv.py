@@ -40,14 +40,13 @@ import sys
 import numpy as np
 import torch
 
-from point_gn_ros.bank import ridge
+from point_gn_ros.bank.discriminant import fit_ridge
 from point_gn_ros.bank.builder import feature_cache_path
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.enroll import (BankFile, RefitPolicy, add_examples, refit,
-                                      remove_class)
-from point_gn_ros.bank.objects import ObjectTest
+from point_gn_ros.bank.discriminant import fit_object_test
+from point_gn_ros.bank.enroll import BankFile, add_examples, remove_class
+from point_gn_ros.bank.refit import RefitPolicy, refit
 from point_gn_ros.bank.refit import enrolled_debias
-from point_gn_ros.bank.live import refit_ridge_sections
 from point_gn_ros.core.config import ENCODER_VERSION
 from point_gn_ros.core.fusion import fused_examples
 from point_gn_ros.core.views import (SIMULATOR_VERSION, VIEW_PROTOCOLS, simulate_view,
@@ -82,13 +81,13 @@ def subset(bf: BankFile, keep_obj: np.ndarray, raw: np.ndarray) -> BankFile:
     head = without_rows(b, raw[per * gone], b.labels[torch.from_numpy(~keep_obj)])
     keep = torch.from_numpy(keep_obj)
     if head is not None and head.ridge_coef is not None:   # refitted without them, in full
-        head = replace(head, ridge_coef=ridge.fit(b.features[keep], b.labels[keep],
+        head = replace(head, ridge_coef=fit_ridge(b.features[keep], b.labels[keep],
                                                   b.num_classes, head.ridge_gamma,
                                                   head.ridge_lambda))
     objects = b.objects
-    if objects is not None:     # bank/objects.py, refitted on the kept objects' scans alone
+    if objects is not None:     # ObjectTest, refitted on the kept objects' scans alone
         rows = (per * np.flatnonzero(keep_obj)[:, None] + np.arange(1, per)).ravel()
-        objects = ObjectTest.fit(v.transform.standardized(torch.from_numpy(raw[rows])),
+        objects = fit_object_test(v.transform.standardized(torch.from_numpy(raw[rows])),
                                  np.repeat(np.flatnonzero(keep_obj), per - 1),
                                  views.labels.numpy(), b.class_names, objects.rank,
                                  objects.alpha, objects.lam, objects.theta)
@@ -209,9 +208,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--betas', type=float, nargs='+', default=list(BETAS))
     p.add_argument('--debias', type=float, nargs='+', default=[0.0],
                    help='fractions f of the wide LDA mean-noise correction of enrolled classes '
-                        '(bank/lda.py lda_noise_trace), each crossed with every beta')
+                        '(bank/discriminant.py lda_noise_trace), each crossed with every beta')
     p.add_argument('--budgets', type=float, nargs='+', default=[0.0],
-                   help='steal budgets rho (RefitPolicy.lda_steal_budget, bank/debias.py; 0 = '
+                   help='steal budgets rho (RefitPolicy.lda_steal_budget, bank/discriminant; 0 = '
                         'the uniform share), each crossed with every debias share (the cap)')
     p.add_argument('--other-scans', choices=('bank', 'random'), default='bank',
                    help="existing-class scans: the bank's own scans of each held-out object, "
@@ -267,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
         # has it; the enrollments below refit with the policy under test.
         cur = refitted(cur, built)
         if args.new_categories:     # the removals left the ridge term pending: the 'before'
-            cur = refit_ridge_sections(cur)      # state is the one the robot keeps
+            cur = cur      # state is the one the robot keeps
         # dataset class id -> the bank's (removing classes shifts the ids after them)
         bank_id = np.array([cur.bank.class_names.index(n) if n in cur.bank.class_names else -1
                             for n in train.class_names])
@@ -296,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
             q_ids += [cur.bank.class_names.index(name)] * args.query_views
         # A kernel ridge term is refitted in full after the enrollments, as the node's
         # background refit does (bank/live.py): the state the robot keeps.
-        cur = refit_ridge_sections(cur)
+        cur = cur
         q_inst, q_ids = torch.cat(query), np.asarray(q_ids)
         for b, fd, rho in grid:
             bb = with_beta(with_debias(cur, fd, rho), b, names, args.scope)

@@ -22,9 +22,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from point_gn_ros.bank.head import CovarianceFit, log_vote_shares_grid
+from point_gn_ros.bank.discriminant import CovarianceFit
+from point_gn_ros.bank.vote import log_vote_shares
 from point_gn_ros.bank.selection import stratified_folds
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.datasets import open_dataset
 
 GAMMAS = (20.0, 40.0, 80.0)
@@ -44,7 +45,7 @@ def cv(x: torch.Tensor, labels: np.ndarray, vote_dims: int, lda_dims: int | None
         fit = CovarianceFit.fit(tf(x[tr]), lab[tr], 40)
         u_b = torch.nn.functional.normalize(fit.whitened(fit.coords(tf(x[tr])), 0.1), dim=1)
         u_v = torch.nn.functional.normalize(fit.whitened(fit.coords(tf(x[val])), 0.1), dim=1)
-        for g, lv in zip(GAMMAS, log_vote_shares_grid(u_v @ u_b.T, lab[tr], 40, GAMMAS),
+        for g, lv in zip(GAMMAS, [log_vote_shares(u_v @ u_b.T, lab[tr], 40, g_) for g_ in GAMMAS],
                          strict=True):
             votes[g][vi] = lv
         tf2 = FeatureTransform.fit(x[tr], 'standardize', lda_dims)

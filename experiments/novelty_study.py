@@ -19,13 +19,14 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.builder import encode_dataset
-from point_gn_ros.bank.head import CovarianceFit, fit_head
+from point_gn_ros.bank.discriminant import CovarianceFit, fit_head
 from point_gn_ros.bank.selection import stratified_folds
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.evaluation.openset import auroc, choose_known
 from point_gn_ros.recognizer import make_encoder
+from point_gn_ros.bank.vote import ExactSearch, reference_head
 
 # The aligned head chosen by 5-fold CV on the full train split (benchmarks/log/2026-11-29.md).
 GAMMA, ALPHA, LDA_ALPHA, WEIGHT, TEMPERATURE = 160.0, 0.2, 0.01, 0.3, 7.99
@@ -61,7 +62,7 @@ def main() -> None:
         q = np.concatenate([val, unseen])
         is_unseen = np.r_[np.zeros(len(val)), np.ones(len(unseen))].astype(bool)
         zq = tf(feats[q])
-        prob, novelty = head.evaluate(zq, head.vote_space(z), lab, 20)
+        prob, novelty = reference_head(head, zq, ExactSearch(head.vote_space(z), lab, 20))
         fit = CovarianceFit.fit(z, lab, 20)
         u = fit.whitened(fit.coords(zq), LDA_ALPHA).double()
         means = fit.whitened(fit.coords(fit.means.float()), LDA_ALPHA).double()

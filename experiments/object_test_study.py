@@ -26,8 +26,8 @@ import instance_cv as icv  # noqa: I001 - experiments/ is on sys.path when run
 from enroll_study import misregistered
 from point_gn_ros.bank.builder import encode_dataset
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples
-from point_gn_ros.bank.live import refit_ridge_sections
+from point_gn_ros.bank.enroll import BankFile, add_examples
+from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.core.fusion import fused_examples
 from point_gn_ros.core.views import VIEW_PROTOCOLS, simulate_views
 from point_gn_ros.datasets import open_dataset
@@ -78,7 +78,7 @@ def one_round(r: int, bf: BankFile, train, labels, raw, per, m, c, sw_all,  # no
         names.append(f'{cat}_object_{o}')
         ex.append(f)
         q_ids += [cur.bank.class_names.index(names[-1])] * 10
-    cur = icv.with_debias(refit_ridge_sections(cur), 2.0, 0.001)
+    cur = icv.with_debias(cur, 2.0, 0.001)
     q['inst'], target['inst'] = torch.cat(query), np.asarray(q_ids)
     clf = Classifier(cur.bank, search='exact')
     lp = {k: torch.log(clf.scores(q[k]).clamp_min(1e-30)).numpy() for k in KINDS}

@@ -31,7 +31,8 @@ import torch
 
 from point_gn_ros.bank.builder import encode_dataset
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples
+from point_gn_ros.bank.enroll import BankFile, add_examples
+from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.bank.taught import (KEY, REGION_CHI2, REGION_QUANTILE, loo_distances,
                                       plausible_scale)
 from point_gn_ros.core.size import size_descriptors

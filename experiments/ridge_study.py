@@ -19,11 +19,13 @@ import time
 import numpy as np
 import torch
 
-from point_gn_ros.bank import ridge
+from point_gn_ros.bank.discriminant import fit_ridge, ridge_cv_scores
+from point_gn_ros.bank.store import stored_rows
+from point_gn_ros.bank.vote import log_vote_shares, ridge_scores
 from point_gn_ros.bank.builder import encode_dataset
-from point_gn_ros.bank.head import CovarianceFit, log_vote_shares_grid
+from point_gn_ros.bank.discriminant import CovarianceFit
 from point_gn_ros.bank.selection import stratified_folds
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset
@@ -71,9 +73,8 @@ def main() -> None:
                                                      dim=1) for i in (tr, val))
         lda = torch.log_softmax(fit.lda_logits(fit.coords(tf(x[val])), 0.01), 1).float()
         put('LDA (0.01)', vi, lda)
-        for g, lv in zip((20.0, 40.0, 80.0), log_vote_shares_grid(u_val @ u_tr.T, lab[tr], C,
-                                                                   (20.0, 40.0, 80.0)),
-                         strict=True):
+        for g in (20.0, 40.0, 80.0):
+            lv = log_vote_shares(u_val @ u_tr.T, lab[tr], C, g)
             put(f'vote gamma {g:g}', vi, lv)
             for w in (0.1, 0.2, 0.3):
                 put(f'head: vote gamma {g:g} + {w:g} x LDA', vi, lv + w * lda)
@@ -84,16 +85,16 @@ def main() -> None:
             w = torch.linalg.solve(phi.T @ phi + lam * torch.eye(phi.shape[1], dtype=phi.dtype),
                                    phi.T @ y)
             put(f'linear ridge lambda {lam:g}', vi, phi_v @ w)
-        for (g, lam), s in ridge.cv_scores(u_tr, u_val, lab[tr], C, tuple(args.gammas),
+        for (g, lam), s in ridge_cv_scores(u_tr, u_val, lab[tr], C, tuple(args.gammas),
                                            tuple(args.lambdas)).items():
             put(f'KRR gamma {g:g} lambda {lam:g}', vi, s)
         if args.quantised:
-            q_tr = ridge.stored_rows(u_tr, 'int4')
+            q_tr = stored_rows(u_tr, 'int4')
             for g, lam in ((1.0, 0.01), (0.5, 0.01)):
                 for name, fit_rows in (('float fit', u_tr), ('int4 fit', q_tr)):
-                    a = ridge.fit(fit_rows, lab[tr], C, g, lam)
+                    a = fit_ridge(fit_rows, lab[tr], C, g, lam)
                     put(f'KRR gamma {g:g} lambda {lam:g}, {name}, int4 rows queried', vi,
-                        ridge.ridge_scores(u_val @ q_tr.T, a, g))
+                        ridge_scores(u_val @ q_tr.T, a, g))
         print(f'fold {f}: {time.time() - t0:.0f} s', flush=True)
     for key, ok in sorted(right.items(), key=lambda kv: -float(kv[1].double().mean())):
         print(f'{100 * float(ok.double().mean()):6.2f} %  {key}')

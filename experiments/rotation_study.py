@@ -34,15 +34,16 @@ import time
 import numpy as np
 import torch
 
-from point_gn_ros.bank.head import fit_head
+from point_gn_ros.bank.discriminant import fit_head
 from point_gn_ros.bank.selection import stratified_folds
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import ENCODER_VERSION, EncoderConfig
 from point_gn_ros.core.sampling import canonical_yaw, normalize, resample, rotate_z
 from point_gn_ros.core.views import DEFAULT_VIEW_CONFIG, SIMULATOR_VERSION, simulate_views
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.datasets.views import hash_seed
 from point_gn_ros.recognizer import make_encoder
+from point_gn_ros.bank.vote import ExactSearch, reference_head
 
 VARIANTS = ('a', 'b', 'c2', 'c4', 'c4h', 'c4v')
 # (dims, gamma, whitening shrinkage, LDA shrinkage, LDA weight): gated_study's scan expert, and
@@ -165,7 +166,8 @@ def cv_probs(feats: np.ndarray, labels: np.ndarray, parts: list, c: int, knobs: 
         z = tf(f[tr])
         lab = torch.from_numpy(labels[tr])
         head = fit_head(z, lab, c, gamma, alpha, lda_alpha, w, 1.0)
-        probs[va] = head.evaluate(tf(f[va]), head.vote_space(z), lab, c)[0].numpy()
+        probs[va] = reference_head(head, tf(f[va]),
+                                   ExactSearch(head.vote_space(z), lab, c))[0].numpy()
     return probs
 
 

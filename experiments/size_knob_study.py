@@ -34,7 +34,8 @@ import torch
 
 from point_gn_ros.bank.builder import encode_dataset
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples
+from point_gn_ros.bank.enroll import BankFile, add_examples
+from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.bank.taught import PRIOR_COUNT, PRIOR_VAR, plausible_scale
 from point_gn_ros.core.size import size_descriptors
 from point_gn_ros.core.views import VIEW_PROTOCOLS
@@ -47,7 +48,7 @@ SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'datasets'
 KAPPAS = (5.0, 10.0, 20.0)
 W_SIZES = (0.25, 0.5, 1.0, 2.0)
 GATES = (-1.0, 0.6, 0.75, 0.85)          # -1: always open (no gate)
-POLICY = RefitPolicy(lda_prior='typical', lda_debias=2.0, lda_steal_budget=0.001, ridge='off')
+POLICY = RefitPolicy(lda_prior='typical', lda_debias=2.0, lda_steal_budget=0.001)
 
 
 def tabletop(cache: Path, draws: int) -> tuple[dict, BankFile]:

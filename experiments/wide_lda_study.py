@@ -9,7 +9,7 @@ grouped by object; complete section: every object, stratified), the whitened vot
 dims plus an LDA fitted on:
   pca     the same PCA dims (the builder's head before `--wide-lda`)
   W       the first W PCA dims of the standardised features (--widths)
-  all     every standardised dim (bank/head.py's wide LDA)
+  all     every standardised dim (bank/model.py Head's wide LDA)
   rank R  every dim, the covariance kept at rank R plus an isotropic rest (storable as a
           (D, R) basis instead of a (D, D) precision; --ranks)
 each with its shrinkage and fusion weight chosen on the same held-out scores. Reads the
@@ -32,8 +32,8 @@ import torch
 
 from point_gn_ros.bank import selection as sel
 from point_gn_ros.bank.builder import feature_cache_path
-from point_gn_ros.bank.head import CovarianceFit
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.discriminant import CovarianceFit
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset

@@ -113,7 +113,7 @@ class Recognizer:
         search: the classifier's bank search, 'auto', 'exact' or 'indexed'
         (bank/classifier.py; 'auto' indexes large banks once, here); previous: the
         recognizer of the bank version this one follows (its index is extended, not rebuilt);
-        object_test: apply the bank's object test to taught classes (bank/objects.py);
+        object_test: apply the bank's object test to taught classes (bank/model.py);
         metric_size: the clouds are in metres, z up: their size (core/size.py) is evidence
         (bank/taught.py); False for inputs without metric meaning (unit-sphere data);
         fit_threshold: shape-and-size fit below which a cloud is unknown (None: no such rule);
@@ -130,6 +130,13 @@ class Recognizer:
         self.metric_size = metric_size
         self.resample = resample
         self.top_k = top_k
+
+    def set_unknown_threshold(self, unknown_threshold: float | None) -> None:
+        """Set the classifier's probability / calibrated unknown rule.
+
+        As bank/classifier.py `unknown_rules` resolves it; raises ValueError as it does.
+        """
+        self.classifier.set_unknown_threshold(unknown_threshold)
 
     @classmethod
     def from_bank(cls, path: str | os.PathLike[str] | None = None, device: str = 'cpu',

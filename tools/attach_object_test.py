@@ -20,7 +20,8 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.builder import encode_dataset
-from point_gn_ros.bank.objects import PREFIX, ObjectTest
+from point_gn_ros.bank.discriminant import fit_object_test
+from point_gn_ros.bank.store import OBJECTS_PREFIX
 from point_gn_ros.bank.store import FeatureBank, default_bank_path
 from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset
@@ -51,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     if int(scan.sum()) != len(bank.views) or not np.array_equal(
             np.asarray(ds.labels)[scan], bank.views.labels.numpy()):
         raise SystemExit("the re-made scans do not match the bank's scan section")
-    objects = ObjectTest.fit(bank.views.transform.standardized(feats[torch.from_numpy(scan)]),
+    objects = fit_object_test(bank.views.transform.standardized(feats[torch.from_numpy(scan)]),
                              np.asarray(ds.groups)[scan], bank.views.labels.numpy(),
                              bank.class_names)
     out = Path(args.output or args.bank)
@@ -62,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         changed = [k for k in old.files if k not in ('meta', 'views_meta')
                    and not np.array_equal(old[k], new[k])]
         added = sorted(set(new.files) - set(old.files))
-    if changed or any(not k.startswith(PREFIX) for k in added):
+    if changed or any(not k.startswith(OBJECTS_PREFIX) for k in added):
         tmp.unlink()
         raise SystemExit(f'arrays changed: {changed}, added: {added}')
     tmp.replace(out)

@@ -7,15 +7,17 @@ from datetime import datetime, UTC
 import hashlib
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.discriminant import fit_gate, fit_head, fit_object_test, fit_ridge
+from point_gn_ros.bank.model import GATE_DIMS, GATE_SHRINKAGE, FeatureTransform, Head, Standardize
+from point_gn_ros.bank.store import (FeatureBank, MatrixDtype, rounded_head, rounded_transform,
+                                     stored_rows)
 from point_gn_ros.core.config import EncoderConfig
-from point_gn_ros.bank.transform import FeatureTransform, Standardize
-from point_gn_ros.bank.half import MatrixDtype, rounded_head, rounded_transform
-from point_gn_ros.bank.head import Head, fit_head
+from point_gn_ros.datasets.base import Dataset
 from point_gn_ros.bank.selection import (DEFAULT_ALPHAS, DEFAULT_GAMMAS, DEFAULT_LDA_ALPHAS,
                                          DEFAULT_WEIGHTS, Selection, calibrate_novelty,
                                          calibrate_unknown, select)
@@ -63,9 +65,9 @@ def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel:
 
     -> transform, head, bank rows in the vote's space (N, d) float32. With a kernel ridge
     term (sel.ridge_weight > 0) the rows come back as the file will store them in
-    `stored_dtype` (int4 rounding would otherwise undo the ridge fit: bank/ridge.py).
+    `stored_dtype` (int4 rounding would otherwise undo the ridge fit: bank/discriminant.py).
     matrix_dtype: the projection, whitening and wide-LDA precision are rounded as a file
-    of that matrix dtype stores them (bank/half.py) before anything is computed with them.
+    of that matrix dtype stores them (bank/store.py) before anything is computed with them.
     """
     tf = rounded_transform(FeatureTransform.fit(feats, sel.standardize, sel.dims), matrix_dtype)
     z = tf(feats)
@@ -76,9 +78,8 @@ def fit_selected(feats: torch.Tensor, labels: np.ndarray, num_classes: int, sel:
                         matrix_dtype)
     rows = head.vote_space(z)
     if sel.ridge_weight > 0:
-        from point_gn_ros.bank import ridge
-        rows = ridge.stored_rows(rows, stored_dtype)
-        head = replace(head, ridge_coef=ridge.fit(rows, lab, num_classes, sel.ridge_gamma,
+        rows = stored_rows(rows, stored_dtype)
+        head = replace(head, ridge_coef=fit_ridge(rows, lab, num_classes, sel.ridge_gamma,
                                                   sel.ridge_lambda),
                        ridge_gamma=sel.ridge_gamma, ridge_lambda=sel.ridge_lambda,
                        ridge_weight=sel.ridge_weight)
@@ -105,11 +106,11 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
     stay in one CV fold. alphas=() gives the plain kernel vote (format-1 behaviour).
     cv_subset: (M,) int64 entry indices the CV runs on (default all; CV cost grows with the
     square of the bank): the knobs chosen there are then fitted on every entry.
-    wide_lda: CV also weighs an LDA on every standardised encoder dim (bank/head.py).
-    ridge: CV also weighs a kernel ridge term (bank/ridge.py), fitted on the rows as a file
+    wide_lda: CV also weighs an LDA on every standardised encoder dim (bank/model.py).
+    ridge: CV also weighs a kernel ridge term (bank/discriminant.py), fitted on the rows as a file
     of `stored_dtype` holds them (save the bank with that dtype).
     matrix_dtype: 'float16' stores the large fitted matrices as float16 (format 5,
-    bank/half.py): about half the file of a wide-LDA or PCA bank.
+    bank/store.py): about half the file of a wide-LDA or PCA bank.
     """
     encoder = encoder or make_encoder(cfg, device)
     if feats is None:
@@ -155,3 +156,68 @@ def build_bank(dataset, cfg: EncoderConfig = EncoderConfig(), device: str = 'cpu
     return FeatureBank(features=vote_feats, labels=torch.from_numpy(labels),
                        class_names=list(dataset.class_names), config=encoder.cfg, transform=tf,
                        gamma=sel.gamma, meta=meta, head=head)
+
+
+# ---- two-section banks
+# Two-section banks: complete objects and single-view scans, each with its own head.
+#
+# One head fitted on complete objects and their scans together serves neither well: its
+# knobs, PCA and within-class covariance are dominated by the scans (4 per object), and
+# complete objects lose about 2 points. A two-section bank
+# keeps the complete objects as the main section (exactly the complete-object bank: own PCA
+# width, whitening, LDA, gamma and temperature, all chosen by CV on complete objects) and the
+# scans as a second section (own knobs, chosen by CV grouped by source object); a gate
+# (bank/model.py `Gate`) says how likely a query is a scan and mixes the two sections'
+# probabilities (bank/classifier.py). With the scans' source objects known, the bank also
+# gets the object test of taught classes (bank/model.py), fitted on the scan section.
+
+class RowsDataset(Dataset):
+    """The rows `rows` (bool mask or indices) of a dataset, as a dataset."""
+
+    def __init__(self, base: Dataset, rows: np.ndarray, tag: str) -> None:
+        idx = np.flatnonzero(rows) if np.asarray(rows).dtype == bool else np.asarray(rows)
+        super().__init__(base.path, f'{base.split}[{tag}]', np.asarray(base.labels)[idx],
+                         base.class_names)
+        self.format = base.format
+        self.skipped = list(getattr(base, 'skipped', []))
+        self._base, self._idx = base, idx.astype(np.int64)
+
+    def _load(self, i: int) -> np.ndarray:
+        return self._base[int(self._idx[i])][0]
+
+
+def combine_sections(complete: FeatureBank, views: FeatureBank, feats: torch.Tensor,
+                     is_scan: np.ndarray, gate_dims: int | None = GATE_DIMS,
+                     gate_shrinkage: float = GATE_SHRINKAGE,
+                     groups: np.ndarray | None = None) -> FeatureBank:
+    """The two-section bank: `complete` as the main section, `views` as the scan section.
+
+    feats: (N, D) raw encoder features of every entry of both; is_scan: (N,) bool. The gate
+    is fitted on them. groups: (N,) source object of each entry, or None; given (and the
+    scan section's LDA reads every dim), the object test is fitted on the scans. The unknown
+    rule keeps each kind's held-out false-reject rate at most the target: the lower of the
+    two sections' calibrated thresholds.
+    """
+    if complete.class_names != views.class_names or complete.config != views.config:
+        raise ValueError('sections need the same class names and encoder configuration')
+    gate = fit_gate(feats, is_scan, gate_dims, gate_shrinkage)
+    p = gate.scan_probability(feats).numpy()
+    right = (p > 0.5) == np.asarray(is_scan, dtype=bool)
+    meta: dict[str, Any] = dict(complete.meta)
+    meta['gate'] = {'dims': gate_dims, 'shrinkage': gate_shrinkage, 'priors': 'equal',
+                    'train_routing_complete': float(right[~is_scan].mean()),
+                    'train_routing_scans': float(right[is_scan].mean())}
+    cal_c, cal_v = complete.meta.get('unknown_calibration'), views.meta.get('unknown_calibration')
+    if cal_c and cal_v and cal_c.get('measure', 'probability') == cal_v.get(
+            'measure', 'probability') == 'probability':
+        meta['unknown_calibration'] = dict(
+            cal_c, threshold=min(float(cal_c['threshold']), float(cal_v['threshold'])),
+            rule="lower of the two sections' thresholds")
+    objects = None
+    if groups is not None and views.head is not None and views.head.lda_wide:
+        scan = torch.from_numpy(np.asarray(is_scan, dtype=bool))
+        objects = fit_object_test(views.transform.standardized(feats[scan]),
+                                 np.asarray(groups)[scan.numpy()], views.labels.numpy(),
+                                 views.class_names)
+        meta['object_test'] = objects.describe()
+    return replace(complete, meta=meta, views=views, gate=gate, objects=objects)

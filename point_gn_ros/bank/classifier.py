@@ -1,9 +1,10 @@
-"""Bank classifier: the bank's head (bank/head.py) over cosine similarities to the bank.
+"""Bank classifier: one bank version's answer to encoder features.
 
-The paper's kernel vote sums exp(-gamma (1 - cos)) per class. With gamma in the
-thousands those sums underflow in float32, so they are evaluated relative to the
-best entry (log domain). The head fuses the vote (optionally on whitened features)
-with LDA log-posteriors and calibrates the result with a temperature:
+A query's path, chosen once per Classifier (`Classifier.path`, reported by `point_gn bank
+info` and the node's /diagnostics): lone (a batch of one) or batch, times exact or indexed
+search, all ending in the compiled head (bank/vote.py `CompiledHead`, pgn_head.c); where the
+compiled head does not apply (no kernels, another device, or compiled=False) the torch
+reference head (`reference_head`) with the exact search.
 
   probability (B, C)  calibrated class probabilities, rows sum to 1
   scores      (B,)    probability of the top class
@@ -11,53 +12,46 @@ with LDA log-posteriors and calibrates the result with a temperature:
 
 A two-section bank (complete objects + single-view scans, `FeatureBank.views`) evaluates
 both sections and mixes them with the gate's p = probability that the query is a scan
-(bank/gate.py): probability = (1 - p) complete + p scans, novelty likewise.
+(bank/model.py `Gate`): probability = (1 - p) complete + p scans, novelty likewise; a
+section whose weight is below GATE_SKIP for a row is not evaluated for it.
 
-A plain-vote bank (format 1, or one CV chose the vote for) has probability = each
-class's share of the kernel votes, as before.
+A two-section bank with an object test (bank/model.py `ObjectTest`) then moves the
+probabilities of its taught classes by how much nearer the query is to the taught object
+than to any built one, and renormalises; with no taught class nothing moves. The taught
+classes' prototypes and sizes (bank/taught.py) come last.
 
-A two-section bank with an object test (bank/objects.py) then moves the probabilities of
-its taught classes (those enrollment created) by how much nearer the query is to the taught
-object than to any built one, and renormalises; with no taught class nothing moves.
+Search (`search=`): 'exact' compares every query with every bank entry; 'indexed' uses
+bank/index.py's two-stage search (built once per Classifier, each query alone); 'auto'
+(default) picks 'indexed' for CPU banks of at least `INDEX_MIN_ENTRIES` entries. A kernel
+ridge head reads every entry's cosine: its section is always searched exactly.
 
-A lone query (a batch of one, on the CPU with the compiled kernels) takes bank/lone.py's
-path: the same formulas in a few C calls instead of ~40 torch ops, which after a sensor's
-idle gap each started cold. Batches take the torch path up to the exact scan's cosines; an
-exact section then finishes each row in that compiled code too (`compiled_finish`).
-
-Search (`search=`): 'exact' compares every query with every bank entry (torch);
-'indexed' uses bank/search.py's two-stage search (4-bit coarse scan, exact rescoring of
-the best candidates, each query alone), built once per Classifier; 'auto' (default)
-picks 'indexed' for banks of at least `INDEX_MIN_ENTRIES` entries on the CPU, where a
-lone query would otherwise read the whole bank.
+The unknown rules (label -1) are the Classifier's alone (`unknown_rules`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
-from point_gn_ros.bank.head import ExactSearch, VoteSearch
-from point_gn_ros.bank.helper import helper_thread
-from point_gn_ros.bank.lone import LoneGate, LoneSection
-from point_gn_ros.bank.refit import vote_to_z
+from point_gn_ros.bank.discriminant import vote_to_z
+from point_gn_ros.bank.index import IndexedSearch
+from point_gn_ros.bank.model import ObjectShift
+from point_gn_ros.bank.refit import example_counts
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.bank.taught import TaughtLayer
+from point_gn_ros.bank.vote import (CompiledGate, CompiledHead, ExactSearch, VoteSearch,
+                                    helper_thread, reference_head)
+from point_gn_ros.core import kernels
 
 UNKNOWN = -1
 SEARCHES = ('auto', 'exact', 'indexed')
-# 'auto' indexes banks this large. Below it the exact scan stays affordable (shipped bank,
-# 9,843 x 640: 2.8-3.5 ms a lone query exact, 1.2-2.0 indexed; about equal per query in
-# batches of 16), its labels stay bit-for-bit those of the published figures, and no index
-# is built per enrollment (benchmarks/log "Large banks").
+# 'auto' indexes banks this large; below it the exact scan costs about what the index does
+# and no index is built per enrollment.
 INDEX_MIN_ENTRIES = 20_000
-# Upper bound on queries x bank entries held at once (float32 similarity block).
-_MAX_BLOCK = 1 << 24
 # A section whose gate weight is below this is not evaluated for that row: its share of each
-# probability would be under 1e-6 (the gate is confident for ~85 % of queries, so most
-# queries search one section, not two).
+# probability would be under 1e-6.
 GATE_SKIP = 1e-6
 
 
@@ -96,34 +90,6 @@ class Classification:
         return int(self.labels.shape[0])
 
 
-def votes_from_similarity(sims: torch.Tensor, bank_labels: torch.Tensor, num_classes: int,
-                          gamma: float) -> torch.Tensor:
-    """Kernel-vote shares from cosine similarities.
-
-    sims: (B, N) cosine to each bank entry; bank_labels: (N,) int64 -> (B, C) float32,
-    rows sum to 1.
-    """
-    logits = (sims - 1.0) * gamma                                # (B, N), <= 0
-    logits = logits - logits.max(dim=1, keepdim=True).values     # best entry -> exp(0)
-    votes = torch.zeros(sims.shape[0], num_classes, dtype=logits.dtype, device=logits.device)
-    votes.index_add_(1, bank_labels, logits.exp_())
-    return votes / votes.sum(dim=1, keepdim=True)
-
-
-def class_scores(query: torch.Tensor, bank_feats: torch.Tensor, bank_labels: torch.Tensor,
-                 num_classes: int, gamma: float) -> torch.Tensor:
-    """Kernel-vote shares.
-
-    query: (B, d) unit rows; bank_feats: (N, d) unit rows; bank_labels: (N,) int64
-    -> (B, C) float32, rows sum to 1. Queries are processed in blocks so a large
-    bank never needs a huge similarity matrix.
-    """
-    step = max(1, _MAX_BLOCK // max(1, bank_feats.shape[0]))
-    out = [votes_from_similarity(q @ bank_feats.T, bank_labels, num_classes, gamma)
-           for q in query.split(step)]
-    return torch.cat(out) if out else torch.zeros(0, num_classes)
-
-
 def resolve_search(search: str, entries: int, device: torch.device | str = 'cpu',
                    index_min_entries: int = INDEX_MIN_ENTRIES) -> str:
     """'auto' -> 'indexed' for CPU banks of >= index_min_entries entries, else 'exact'."""
@@ -140,10 +106,9 @@ def make_search(kind: str, bank_u: torch.Tensor, bank_labels: torch.Tensor,
     """The vote search `kind` ('exact' or 'indexed') over rows bank_u (N, d), labels (N,).
 
     previous: the search of the bank version before (an enrollment's); an index is then
-    derived from it where that is exact (bank/search.py `IndexedSearch.derive`).
+    derived from it where that is exact (bank/index.py `IndexedSearch.derive`).
     """
     if kind == 'indexed':
-        from point_gn_ros.bank.search import IndexedSearch
         if isinstance(previous, IndexedSearch):
             return IndexedSearch.derive(previous, bank_u, bank_labels, num_classes)
         return IndexedSearch(bank_u, bank_labels, num_classes)
@@ -152,16 +117,53 @@ def make_search(kind: str, bank_u: torch.Tensor, bank_labels: torch.Tensor,
     return ExactSearch(bank_u, bank_labels, num_classes)
 
 
+@dataclass(frozen=True)
+class UnknownRules:
+    """When a query is unknown (label -1); each rule None is off.
+
+    probability: top-1 calibrated probability below it; novelty: novelty above it;
+    fit: shape-and-size fit (bank/taught.py) below it, or the size outside the answer's size
+    region (size misfit > 1); volume: share of volumetric neighbourhoods (core/surface.py)
+    above it.
+    """
+
+    probability: float | None = None
+    novelty: float | None = None
+    fit: float | None = None
+    volume: float | None = None
+
+
+def unknown_rules(bank: FeatureBank, unknown_threshold: float | None = None,
+                  novelty_threshold: float | None = None, fit_threshold: float | None = None,
+                  volume_threshold: float | None = None) -> UnknownRules:
+    """The unknown rules of a bank under the given thresholds.
+
+    unknown_threshold None or 0: off; > 0: top-1 calibrated probability below it; < 0: the
+    bank's calibration (`unknown_calibration`): top-1 probability below its threshold, or
+    novelty above it when its measure is novelty (a novelty threshold given as well: the
+    smaller of the two). novelty_threshold > 0: novelty above it (also combinable).
+    Raises ValueError when unknown_threshold < 0 and the bank holds no calibration.
+    """
+    novelty = novelty_threshold or None
+    probability = unknown_threshold or None
+    if probability is not None and probability < 0:
+        calib = bank.meta.get('unknown_calibration')
+        if not calib:
+            raise ValueError(f'unknown_threshold={unknown_threshold:g} asks for the calibrated '
+                             f'threshold, but {bank.path} holds no calibration')
+        probability = None
+        if calib.get('measure', 'probability') == 'novelty':
+            novelty = float(calib['threshold']) if novelty is None \
+                else min(novelty, float(calib['threshold']))
+        else:
+            probability = float(calib['threshold'])
+    return UnknownRules(probability, novelty, fit_threshold, volume_threshold)
+
+
 class Classifier:
     """Classifies encoder features against a loaded bank with the bank's head.
 
-    Unknown rule (label -1), exactly:
-      unknown_threshold None or 0   off
-      unknown_threshold > 0         top-1 calibrated probability < unknown_threshold
-      unknown_threshold < 0         the bank's calibration (`unknown_calibration`): top-1
-                                    calibrated probability < its threshold (format 1: top-1
-                                    vote share), or novelty > it if its measure is novelty
-      novelty_threshold > 0         novelty > novelty_threshold (also combinable)
+    The unknown rules (label -1) are `rules` (`unknown_rules`).
     """
 
     def __init__(self, bank: FeatureBank, device: str = 'cpu',
@@ -170,18 +172,17 @@ class Classifier:
                  index_min_entries: int = INDEX_MIN_ENTRIES,
                  previous: 'Classifier | None' = None, object_test: bool = True,
                  fit_threshold: float | None = None,
-                 volume_threshold: float | None = None) -> None:
-        """Classifier of one bank version (the search is built here, once).
+                 volume_threshold: float | None = None, compiled: bool = True) -> None:
+        """Classifier of one bank version (its path and search are chosen here, once).
 
         gamma: override the bank's (comparisons only); search: 'auto', 'exact' or
         'indexed' (module docstring); index_min_entries: the size from which 'auto' indexes;
         previous: the classifier of the version this one follows (an enrollment): its
         indexes are extended instead of rebuilt where that gives the same (`make_search`);
-        object_test: apply the bank's object test to its taught classes (bank/objects.py);
-        fit_threshold: a query whose shape-and-size fit (bank/taught.py) is below it, or
-        whose size lies outside its answer's size region, is unknown (None: no such rule);
-        volume_threshold: a query whose share of volumetric
-        neighbourhoods (core/surface.py) is above it is unknown (None: no such rule).
+        object_test: apply the bank's object test to its taught classes; the thresholds:
+        `unknown_rules` (the fit rule also makes a query whose size lies outside its answer's
+        size region unknown); compiled: False runs the torch reference head (the tests'
+        reference).
         """
         self.bank = bank
         self.device = torch.device(device)
@@ -192,43 +193,81 @@ class Classifier:
         self.transform = bank.transform.to(self.device)
         self.features = bank.features.to(self.device)
         self.labels = bank.labels.to(self.device)
-        # A kernel ridge term reads every entry's cosine: the exact search (bank/ridge.py).
-        self.search_kind = 'exact' if self.head.has_ridge else resolve_search(
-            search, len(bank.labels), self.device, index_min_entries)
-        self.search = make_search(self.search_kind, self.features, self.labels,
-                                  bank.num_classes,
-                                  None if previous is None else previous.search)
+        self._choose_path(search, index_min_entries, previous, compiled)
         # A sectioned bank: the scan section has its own classifier, mixed by the gate.
         self.views = None if bank.views is None else Classifier(
             bank.views, device, gamma=None, search=search, index_min_entries=index_min_entries,
-            previous=None if previous is None else previous.views)
+            previous=None if previous is None else previous.views, compiled=compiled)
         self.gate = None if bank.gate is None else bank.gate.to(self.device)
-        self.novelty_threshold = novelty_threshold or None
-        if unknown_threshold is not None and unknown_threshold < 0:
-            calib = bank.meta.get('unknown_calibration')
-            if not calib:
-                raise ValueError(f'{bank.path}: bank holds no calibrated unknown threshold')
-            if calib.get('measure', 'probability') == 'novelty':
-                self.novelty_threshold = float(calib['threshold'])
-                unknown_threshold = None
-            else:
-                unknown_threshold = float(calib['threshold'])
-        self.unknown_threshold = unknown_threshold or None
-        self.fit_threshold = fit_threshold
-        self.volume_threshold = volume_threshold
+        self.rules = unknown_rules(bank, unknown_threshold, novelty_threshold, fit_threshold,
+                                   volume_threshold)
         self._taught: TaughtLayer | None = None
-        # The object test's shift of taught classes (bank/objects.py); None: nothing moves.
+        # The object test's shift of taught classes; None: nothing moves.
         self.object_shift = None if bank.objects is None or not object_test \
-            else bank.objects.shift_for(bank)
-        # A lone query's compiled path (bank/lone.py), where every part of this bank has one.
-        self.lone = LoneSection.build(self)
-        # A batch's rows finished by it after the exact scan (False: the torch head, which
-        # the tests hold it to).
-        self.compiled_finish = True
-        self.lone_gate = None
-        if self.lone is not None and self.views is not None and self.gate is not None:
-            self.lone_gate = LoneGate(self.lone.lib, self.gate) if self.views.lone else None
-            self.lone = self.lone if self.lone_gate is not None else None
+            else _object_shift(bank)
+        # A lone query runs the compiled path where every part of the bank has one.
+        self.lone = self.compiled_head is not None and (
+            self.views is None or (self.views.compiled_head is not None and self.gate is not None))
+        lib = kernels.load() if self.lone and self.views is not None else None
+        self.compiled_gate = None if lib is None else CompiledGate(lib, self.gate)
+
+    def _choose_path(self, search: str, index_min_entries: int,
+                     previous: 'Classifier | None', compiled: bool) -> None:
+        """The one place a section's path is chosen: its search and its head."""
+        bank = self.bank
+        kind = 'exact' if self.head.has_ridge else resolve_search(
+            search, len(bank.labels), self.device, index_min_entries)
+        prev = None if previous is None else previous.search
+        self.search: VoteSearch = make_search(kind, self.features, self.labels,
+                                              bank.num_classes, prev)
+        self.compiled_head = CompiledHead.build(self.transform, self.head, bank.num_classes,
+                                                self.search) \
+            if compiled and self.device.type == 'cpu' and len(bank.labels) else None
+        if self.compiled_head is None and kind == 'indexed':
+            # the reference head reads every entry
+            kind = 'exact'
+            self.search = make_search(kind, self.features, self.labels, bank.num_classes)
+        self.search_kind = kind
+
+    @property
+    def path(self) -> dict[str, str]:
+        """How a query is answered.
+
+        {'head': 'compiled' | 'reference', 'lone': 'compiled' | 'as a batch', 'search': the
+        search kind per section}.
+        """
+        out = {'head': 'compiled' if self.compiled_head is not None else 'reference',
+               'lone': 'compiled' if self.lone else 'as a batch',
+               'search': self.search_kind}
+        if self.views is not None:
+            out['search'] = f'{self.search_kind} (complete), {self.views.search_kind} (scans)'
+            if self.views.compiled_head is None and self.compiled_head is not None:
+                out['head'] = 'compiled (complete), reference (scans)'
+        return out
+
+    @property
+    def unknown_threshold(self) -> float | None:
+        return self.rules.probability
+
+    @property
+    def novelty_threshold(self) -> float | None:
+        return self.rules.novelty
+
+    @property
+    def fit_threshold(self) -> float | None:
+        return self.rules.fit
+
+    @property
+    def volume_threshold(self) -> float | None:
+        return self.rules.volume
+
+    def set_unknown_threshold(self, unknown_threshold: float | None) -> None:
+        """Re-resolve the probability / calibrated rule (`unknown_rules`), others kept.
+
+        Raises ValueError as `unknown_rules` does; the rules are unchanged then.
+        """
+        self.rules = replace(unknown_rules(self.bank, unknown_threshold),
+                             fit=self.rules.fit, volume=self.rules.volume)
 
     @torch.no_grad()
     def evaluate(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -247,7 +286,7 @@ class Classifier:
     def _mixed(self, features: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The sections' gate-mixed head: probability (B, C), novelty (B,), p(scan) or None."""
-        if len(features) == 1 and self.lone is not None:
+        if len(features) == 1 and self.lone:
             return self._evaluate_lone(features)
         if self.views is None or self.gate is None:
             return (*self._section(features), None)
@@ -255,8 +294,8 @@ class Classifier:
         # Each row is the gate's mix of the sections; a section weighing < GATE_SKIP for a
         # row is skipped for it and its weight given to the other one.
         use_c, use_v = p_scan < 1 - GATE_SKIP, p_scan > GATE_SKIP
-        # Every row in one section (most lone queries): its result as it is, which is what
-        # the mix below gives then (weight 1, the other section's 0), without the masking.
+        # Every row in one section: its result as it is, which is what the mix below gives
+        # then (weight 1, the other section's 0), without the masking.
         if not use_v.any():
             return (*self._section(features), p_scan)
         if not use_c.any():
@@ -280,19 +319,20 @@ class Classifier:
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """`_evaluate` of one query (1, D) by the compiled path: the same formulas."""
         x = np.ascontiguousarray(features[0].detach().numpy(), dtype=np.float32)
-        if self.lone_gate is None:
-            prob, novelty = self.lone.evaluate(x)
+        if self.compiled_gate is None:
+            prob, novelty = self.compiled_head.evaluate(x)
             return torch.from_numpy(prob)[None], torch.tensor([novelty]), None
-        p = self.lone_gate(x)
+        p = self.compiled_gate(x)
+        complete, scans = self.compiled_head, self.views.compiled_head
         if p <= GATE_SKIP:
-            prob, novelty = self.lone.evaluate(x)
+            prob, novelty = complete.evaluate(x)
         elif p >= 1 - GATE_SKIP:
-            prob, novelty = self.views.lone.evaluate(x)
+            prob, novelty = scans.evaluate(x)
         else:   # both sections: the scan section on the helper thread (no GIL held there)
             helper = helper_thread()
-            scans = helper.submit(self.views.lone.evaluate, x) if helper else None
-            prob_c, nov_c = self.lone.evaluate(x)
-            prob_v, nov_v = scans.result() if scans else self.views.lone.evaluate(x)
+            pending = helper.submit(scans.evaluate, x) if helper else None
+            prob_c, nov_c = complete.evaluate(x)
+            prob_v, nov_v = pending.result() if pending else scans.evaluate(x)
             prob = np.float32(1 - p) * prob_c + np.float32(p) * prob_v
             novelty = (1 - p) * nov_c + p * nov_v
         return (torch.from_numpy(prob)[None], torch.tensor([novelty], dtype=torch.float32),
@@ -300,19 +340,15 @@ class Classifier:
 
     def _section(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The section's own head: (B, D) raw features -> probability (B, C), novelty (B,)."""
-        lone = self.lone
-        if (self.compiled_finish and lone is not None and lone.index is None
-                and isinstance(self.search, ExactSearch) and len(features) > 1):
-            z, x = self.transform.both(features) if self.head.lda_wide \
-                else (self.transform(features), None)
-            sims = self.search.similarities(self.head.vote_space(z))
-            prob, novelty = lone.finish_rows(sims.numpy(), (x if self.head.lda_wide
-                                                            else z).numpy())
-            return torch.from_numpy(prob), torch.from_numpy(novelty)
-        if not self.head.lda_wide:
-            return self.head.evaluate_with(self.transform(features), self.search)
-        z, x = self.transform.both(features)         # one standardisation for vote and LDA
-        return self.head.evaluate_with(z, self.search, x=x)
+        if self.head.lda_wide:
+            z, x = self.transform.both(features)     # one standardisation for vote and LDA
+        else:
+            z, x = self.transform(features), None
+        if self.compiled_head is None or not len(features):
+            return reference_head(self.head, z, self.search, x=x)
+        prob, novelty = self.compiled_head.finish_rows(self.head.vote_space(z),
+                                                       x if self.head.lda_wide else z)
+        return torch.from_numpy(prob), torch.from_numpy(novelty)
 
     @torch.no_grad()
     def scores(self, features: torch.Tensor) -> torch.Tensor:
@@ -344,23 +380,24 @@ class Classifier:
         prob, novelty, partial = self._evaluate(features)
         prob, novelty = prob.cpu(), novelty.cpu()
         fit = misfit = None
-        if len(features) and (sizes is not None or self.fit_threshold is not None
+        if len(features) and (sizes is not None or self.rules.fit is not None
                               or self.bank.meta.get('taught')):
             z = self.transform(features.to(self.device)).cpu()
             prob, fit, misfit = self.taught.apply(prob, z, sizes)
         k = max(1, min(top_k, prob.shape[1]))
         top_s, top_i = prob.topk(k, dim=1)
         labels = top_i[:, 0].clone()
-        if self.unknown_threshold is not None:
-            labels[top_s[:, 0] < self.unknown_threshold] = UNKNOWN
-        if self.novelty_threshold is not None:
-            labels[novelty > self.novelty_threshold] = UNKNOWN
-        if self.fit_threshold is not None and fit is not None:
-            labels[torch.from_numpy(fit < self.fit_threshold)] = UNKNOWN
+        rules = self.rules
+        if rules.probability is not None:
+            labels[top_s[:, 0] < rules.probability] = UNKNOWN
+        if rules.novelty is not None:
+            labels[novelty > rules.novelty] = UNKNOWN
+        if rules.fit is not None and fit is not None:
+            labels[torch.from_numpy(fit < rules.fit)] = UNKNOWN
             if misfit is not None:
                 labels[torch.from_numpy(misfit > 1.0)] = UNKNOWN
-        if self.volume_threshold is not None and volumes is not None:
-            labels[torch.from_numpy(np.asarray(volumes) > self.volume_threshold)] = UNKNOWN
+        if rules.volume is not None and volumes is not None:
+            labels[torch.from_numpy(np.asarray(volumes) > rules.volume)] = UNKNOWN
         return Classification(labels=labels.numpy().astype(np.int64),
                               scores=top_s[:, 0].numpy().astype(np.float32),
                               topk_ids=top_i.numpy().astype(np.int64),
@@ -374,3 +411,14 @@ class Classifier:
                               else misfit.astype(np.float32),
                               volumetric=None if volumes is None
                               else np.asarray(volumes, dtype=np.float32))
+
+
+def _object_shift(bank: FeatureBank) -> ObjectShift | None:
+    """The object test's shift of this bank version's taught classes, or None."""
+    views = bank.views
+    if views is None or bank.objects is None:
+        return None
+    built = bank.built_classes
+    removed = {e.class_name for e in bank.enrollments if e.action == 'remove'}
+    return bank.objects.shift(bank.class_names, built, removed, views.transform, views.head,
+                              example_counts(views))

@@ -2,7 +2,7 @@
 
 `refit()` is the single place that knows which fitted parts of a bank depend on its entries:
 gamma and the discriminant head's knobs (kept, or re-chosen by stratified k-fold CV on the
-bank), the head itself (bank/head.py, refitted in closed form) and the open-set thresholds
+bank), the head itself (bank/discriminant.py, refitted in closed form) and the open-set thresholds
 (recalibrated on held-out folds, or kept). The feature transform is always kept: refitting it
 would need the raw encoder features of the whole bank, which the file does not hold.
 """
@@ -11,21 +11,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 import copy
-import threading
 from typing import Any, Literal, get_args
 
 import numpy as np
 import torch
 
-from point_gn_ros.bank import ridge
-from point_gn_ros.bank.debias import check_policy as check_debias, taught_shares
-from point_gn_ros.bank.half import rounded_head
-from point_gn_ros.bank.head import Head, fit_head
-# ScatterStats re-exported: bank_file.py and the scripts import it from here.
-from point_gn_ros.bank.lda import CovarianceFit, ScatterStats, lda_from_means  # noqa: F401
+from point_gn_ros.bank.discriminant import (CovarianceFit, ScatterStats, check_policy as
+                                            check_debias, fit_head, fit_ridge, lda_from_means,
+                                            taught_shares, vote_to_z)
+from point_gn_ros.bank.model import Head
 from point_gn_ros.bank.selection import (DEFAULT_GAMMAS, calibrate_novelty, calibrate_unknown,
                                          select)
-from point_gn_ros.bank.store import FeatureBank
+from point_gn_ros.bank.store import FeatureBank, rounded_head, stored_rows
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.errors import PointGNError
 
@@ -67,10 +64,10 @@ class RefitPolicy:
     provenance, gets the mean share of a built class).
     lda_debias: share f of the mean-noise correction a wide LDA gives each enrolled class
     (one not in the build's provenance): its LDA bias += f tr(Sigma_a^-1 Sigma) / (2 n), n
-    its entries (bank/lda.py `lda_noise_trace`). 0 (default): none; built classes never.
+    its entries (bank/discriminant.py `lda_noise_trace`). 0 (default): none; built classes never.
     lda_steal_budget: rho > 0 makes lda_debias a cap: each enrolled class gets the largest
     share <= lda_debias whose predicted steal rate from the built classes is <= rho
-    (bank/debias.py). 0 (default): every enrolled class gets lda_debias.
+    (bank/discriminant.py). 0 (default): every enrolled class gets lda_debias.
     """
 
     gamma: GammaPolicy = 'auto'
@@ -82,10 +79,6 @@ class RefitPolicy:
     lda_prior: LdaPrior = 'entries'
     lda_debias: float = 0.0
     lda_steal_budget: float = 0.0
-    # A section with a kernel ridge term (bank/ridge.py) whose rows changed: 'off' serves the
-    # head without the term at once (its own CV temperature) and marks the full refit pending
-    # (bank/live.py runs it in the background); 'full' refits it here (seconds: offline use).
-    ridge: Literal['off', 'full'] = 'off'
 
     def __post_init__(self) -> None:
         check_debias(self.lda_debias, self.lda_steal_budget)
@@ -97,33 +90,23 @@ class RefitPolicy:
         if self.calibration not in ('keep', 'recalibrate', 'auto'):
             raise ValueError(f'calibration policy must be keep, recalibrate or auto, got '
                              f'{self.calibration!r}')
-        if self.ridge not in ('off', 'full'):
-            raise ValueError(f'ridge policy must be off or full, got {self.ridge!r}')
         if self.min_examples < 1 or self.folds < 2:
             raise ValueError('min_examples must be >= 1 and folds >= 2')
 
 
 def copy_meta(meta: dict[str, Any]) -> dict[str, Any]:
-    """A deep copy of bank metadata, but the `enrollments` history's entries are shared.
-
-    History entries are never changed once written (bank/enroll.py): copying them on every
-    version would make n enrollments cost O(n^2).
-    """
-    history = meta.get('enrollments')
-    out = copy.deepcopy({k: v for k, v in meta.items() if k != 'enrollments'})
-    if history is not None:
-        out['enrollments'] = list(history)
-    return out
+    """A deep copy of bank metadata (the enrollment log is a FeatureBank field, not in it)."""
+    return copy.deepcopy(meta)
 
 
 def example_counts(bank: FeatureBank) -> torch.Tensor:
     """Examples per class (C,) int64: entries, less the extra frames of augmented enrollments.
 
     An example enrolled with augmentation (core/augment.py) is k entries; the bank's meta
-    `augmented_entries` {class: entries beyond one per example} records the difference.
+    `augmented_entries` field {class: entries beyond one per example} records the difference.
     """
     counts = torch.bincount(bank.labels, minlength=bank.num_classes)
-    for name, extra in bank.meta.get('augmented_entries', {}).items():
+    for name, extra in bank.augmented_entries.items():
         if name in bank.class_names:
             counts[bank.class_names.index(name)] -= int(extra)
     return counts
@@ -139,7 +122,7 @@ def example_groups(bank: FeatureBank) -> np.ndarray | None:
     its last removal in log order. CV (`refit`) keeps a group in one fold: a held-out example
     must not be matched by its own mirror. A class whose log does not add up stays ungrouped.
     """
-    aug = bank.meta.get('augmented_entries', {})
+    aug = bank.augmented_entries
     if not aug:
         return None
     labels = bank.labels.numpy()
@@ -149,10 +132,10 @@ def example_groups(bank: FeatureBank) -> np.ndarray | None:
             continue
         rows = np.flatnonzero(labels == bank.class_names.index(name))
         adds: list[tuple[int, int]] = []
-        for e in bank.meta.get('enrollments', []):
-            if e.get('class') == name:
-                adds = [] if e.get('action') == 'remove' else [
-                    *adds, (int(e['count']), variants_per_example(e.get('augment', 'none')))]
+        for e in bank.enrollments:
+            if e.class_name == name:
+                adds = [] if e.action == 'remove' else [
+                    *adds, (e.count, variants_per_example(e.augment or 'none'))]
         pos = len(rows) - sum(n for n, _ in adds)
         if pos < 0:
             continue
@@ -179,9 +162,9 @@ def active_view(bank: FeatureBank, min_examples: int) -> FeatureBank:
         vkeep = ok[bank.views.labels]
         views = replace(bank.views, features=bank.views.features[vkeep],
                         labels=bank.views.labels[vkeep],
-                        head=ridge.head_subset(bank.views.head, vkeep))
+                        head=_head_subset(bank.views.head, vkeep))
     return replace(bank, features=bank.features[keep], labels=bank.labels[keep], views=views,
-                   head=ridge.head_subset(bank.head, keep))
+                   head=_head_subset(bank.head, keep))
 
 
 def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
@@ -192,7 +175,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
     (meta['refit'] records what was done):
     - gamma and the head's knobs (whitening / LDA shrinkage, fusion weight, temperature) are
       kept, or re-chosen by stratified k-fold CV on the bank (policy.gamma);
-    - the head (bank/head.py) is refitted in closed form on the bank's entries: with kept
+    - the head (bank/model.py) is refitted in closed form on the bank's entries: with kept
       knobs, the LDA class means, priors and pooled covariance (the vote's whitening is kept,
       so stored rows do not move); after CV, the whole head, and every row is re-whitened;
     - the open-set thresholds are recalibrated on held-out folds or kept (policy.calibration).
@@ -266,10 +249,10 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
         z_all = vote_to_z(bank.features, head)
         features = z_all if new_head is None else new_head.vote_space(z_all)
     ridge_how = None
-    if head is not None and head.ridge_coef is not None:   # bank/ridge.py: knobs kept
-        new_head, features, ridge_how = ridge.refit(
+    if head is not None and head.ridge_coef is not None:   # the ridge's knobs are kept
+        new_head, features, ridge_how = _refit_ridge(
             head, new_head or Head(gamma), features, bank.labels, bank.num_classes, rewhiten,
-            str(meta.get('stored_dtype', 'float32')), policy.ridge, meta)
+            str(meta.get('stored_dtype', 'float32')))
     if new_head is not None and new_head.is_plain_vote and new_head.temperature == 1.0:
         new_head = None
     cal_reason = _recalibrate(meta, bank, view, compact, present, gamma, new_head, sel, policy,
@@ -291,7 +274,7 @@ def refit(bank: FeatureBank, policy: RefitPolicy = RefitPolicy(),
 
 def enrolled_debias(head: Head, n: torch.Tensor, present: np.ndarray, bank: FeatureBank,
                     meta: dict, policy: RefitPolicy) -> tuple[Head, dict[str, float]]:
-    """A kept wide LDA with its enrolled classes' mean-noise correction (bank/debias.py).
+    """A kept wide LDA with its enrolled classes' mean-noise correction (bank/discriminant.py).
 
     head: over the present classes (class ids `present`), priors applied; n: their entries;
     enrolled = not in meta's build provenance -> (head, share per enrolled class by name).
@@ -307,7 +290,7 @@ def enrolled_debias(head: Head, n: torch.Tensor, present: np.ndarray, bank: Feat
 
 def _taught(bank: FeatureBank, meta: dict, present: np.ndarray) -> np.ndarray:
     """(len(present),) bool: the classes an enrollment created (not in the build's provenance)."""
-    built = set(meta.get('provenance', {}).get('per_class', bank.class_names))
+    built = bank.built_classes
     return np.array([bank.class_names[c] not in built for c in present], dtype=bool)
 
 
@@ -329,36 +312,37 @@ def _prior_shift(prior: LdaPrior, n: np.ndarray, taught: np.ndarray) -> torch.Te
     return torch.where(built, 0.0, (typical / n).log()).float()
 
 
-def vote_to_z(u: torch.Tensor, head: Head | None) -> torch.Tensor:
-    """Bank rows in the vote's space (N, d) -> the transformed rows z (N, d) they came from.
+def _head_subset(head: Head | None, keep: torch.Tensor | np.ndarray) -> Head | None:
+    """The head with the ridge coefficients of the kept rows (bool (N,)) only.
 
-    u = normalize(z W) with W the head's (invertible, symmetric) whitening, z unit rows, so
-    z = normalize(u W^-1) (exact up to the stored precision). Without whitening u is z.
+    Heads without a ridge: as they are.
     """
-    if head is None or head.whiten is None:
-        return u
-    return torch.nn.functional.normalize(u.double() @ _unwhitening(head.whiten), dim=1).float()
+    if head is None or head.ridge_coef is None:
+        return head
+    return replace(head, ridge_coef=head.ridge_coef[
+        torch.as_tensor(keep, dtype=torch.bool)[:len(head.ridge_coef)]])
 
 
-# (whitening tensor, its float64 inverse) by id: every enrollment maps its new rows back to
-# z with the section's unchanged whitening; inverting it each time cost 20 ms per section.
-_INVERSES: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
-_MAX_INVERSES = 8
-_INVERSES_LOCK = threading.Lock()
+def _refit_ridge(head: Head, new_head: Head, rows: torch.Tensor, labels: torch.Tensor,
+                 num_classes: int, moved: bool, dtype: str) -> tuple[Head, torch.Tensor, str]:
+    """The kernel ridge part of `refit`, the other knobs of new_head already set.
 
-
-def _unwhitening(whiten: torch.Tensor) -> torch.Tensor:
-    """W^-1 (d, d) float64 of a whitening W, cached (heads are immutable once fitted)."""
-    with _INVERSES_LOCK:
-        hit = _INVERSES.get(id(whiten))
-    if hit is not None and hit[0] is whiten:
-        return hit[1]
-    inv = torch.linalg.inv(whiten.double())
-    with _INVERSES_LOCK:
-        if len(_INVERSES) >= _MAX_INVERSES:
-            _INVERSES.pop(next(iter(_INVERSES)))
-        _INVERSES[id(whiten)] = (whiten, inv)   # holding whiten keeps its id unique
-    return inv
+    head: the section's head before; its coefficients are kept only if rows (N, d) are still
+    the rows they were fitted on (same count, no class removed or added), else refitted in
+    full on the rows as the file stores them (moved: rows were re-whitened; appended rows
+    are stored values already). -> (new_head, those rows, what was done). A published bank
+    version always has its ridge term fitted.
+    """
+    same = not moved and head.ridge_coef.shape[0] == len(rows) and \
+        head.ridge_coef.shape[1] == num_classes
+    knobs = dict(ridge_gamma=head.ridge_gamma, ridge_lambda=head.ridge_lambda,
+                 ridge_weight=head.ridge_weight)
+    if same:
+        return replace(new_head, ridge_coef=head.ridge_coef, **knobs), rows, 'kept'
+    if moved:
+        rows = stored_rows(rows, dtype)
+    coef = fit_ridge(rows, labels, num_classes, head.ridge_gamma, head.ridge_lambda)
+    return replace(new_head, ridge_coef=coef, **knobs), rows, 'refitted in full'
 
 
 def _expand_lda(head: Head, present: np.ndarray, num_classes: int) -> Head:

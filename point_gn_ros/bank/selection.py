@@ -16,16 +16,16 @@ import itertools
 import numpy as np
 import torch
 
-from point_gn_ros.bank import ridge as ridge_mod
-from point_gn_ros.bank.head import CovarianceFit, best_temperature, log_vote_shares_grid
-from point_gn_ros.bank.transform import FeatureTransform, Standardize
+from point_gn_ros.bank.discriminant import (RIDGE_MAX_ENTRIES, CovarianceFit, best_temperature,
+                                            ridge_cv_scores)
+from point_gn_ros.bank.model import FeatureTransform, Standardize
+from point_gn_ros.bank.vote import log_vote_shares
 
-# Doubling steps: one exp() serves the whole grid (head.log_vote_shares_grid).
 DEFAULT_GAMMAS = tuple(5.0 * 2.0 ** k for k in range(11))          # 5 .. 5120
 DEFAULT_ALPHAS = (0.05, 0.1, 0.2, 0.4)                # whitening of the vote (a matmul each)
 DEFAULT_LDA_ALPHAS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4)  # LDA covariance (nearly free in CV)
 DEFAULT_WEIGHTS = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
-# Kernel ridge term (bank/ridge.py), tried only when asked (`select(ridge=True)`): kernel
+# Kernel ridge term (bank/discriminant.py), tried only when asked (`select(ridge=True)`): kernel
 # widths, regularisers and weights in the fused score (ridge scores span ~1, log vote shares
 # tens of nats). Yaw-aligned ModelNet40 train, 5 folds: 89.9 % with it, 88.7 % without.
 RIDGE_GAMMAS = (0.25, 0.5, 1.0, 2.0)
@@ -165,8 +165,8 @@ def _fold_scores(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
     def vote(space: float | None, sims: torch.Tensor, val: np.ndarray, train: np.ndarray) -> None:
         vi = torch.from_numpy(val)
         out.best_cos[space][vi] = sims.max(dim=1).values
-        for gi, logv in enumerate(log_vote_shares_grid(sims, lab[train], num_classes, gammas)):
-            out.votes[space][gi, vi] = logv
+        for gi, gamma in enumerate(gammas):
+            out.votes[space][gi, vi] = log_vote_shares(sims, lab[train], num_classes, gamma)
 
     for val in parts:
         train = np.setdiff1d(everything, val)
@@ -241,12 +241,12 @@ def select(feats: torch.Tensor, labels: np.ndarray, num_classes: int,
     weights=(0,) gives the plain kernel vote. With fewer than
     `folds` objects in some class the folds shrink to that count; with one, no CV is
     possible and the plain vote with FALLBACK_GAMMA is returned (`fallback` says why).
-    wide_lda: also try each LDA on the standardised rows before the PCA (bank/head.py);
-    ties keep the LDA on z. ridge: then also try a kernel ridge term (bank/ridge.py) in the
+    wide_lda: also try each LDA on the standardised rows before the PCA (bank/model.py);
+    ties keep the LDA on z. ridge: then also try a kernel ridge term (bank/discriminant.py) in the
     chosen vote space, kept only if it raises the held-out accuracy.
     """
-    if ridge and len(labels) > ridge_mod.MAX_ENTRIES:
-        raise ValueError(f'a kernel ridge head fits banks of at most {ridge_mod.MAX_ENTRIES} '
+    if ridge and len(labels) > RIDGE_MAX_ENTRIES:
+        raise ValueError(f'a kernel ridge head fits banks of at most {RIDGE_MAX_ENTRIES} '
                          f'entries (its (N, N) solve), this one has {len(labels)}')
     with _threads_for(len(labels)):
         return _select(feats, labels, num_classes, gammas, standardize_options, dims_options,
@@ -360,7 +360,7 @@ def _with_ridge(feats: torch.Tensor, lab: torch.Tensor, num_classes: int,
             fit = CovarianceFit.fit(u_tr, lab[train], num_classes)
             u_tr, u_val = (torch.nn.functional.normalize(
                 fit.whitened(fit.coords(u), row['whiten_alpha']), dim=1) for u in (u_tr, u_val))
-        for key, s in ridge_mod.cv_scores(u_tr, u_val, lab[train], num_classes, RIDGE_GAMMAS,
+        for key, s in ridge_cv_scores(u_tr, u_val, lab[train], num_classes, RIDGE_GAMMAS,
                                           RIDGE_LAMBDAS).items():
             scores[key][torch.from_numpy(val)] = s
     best: tuple = (acc, fused, {'gamma': 0.0, 'lambda': 0.0, 'weight': 0.0})

@@ -58,12 +58,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument('--matrix-dtype', choices=('float32', 'float16'), default='float32',
                    help='precision of the fitted PCA projection, whitening and wide-LDA '
                         'precision (float16: about half their bytes; the fit uses the rounded '
-                        'values; format 5, which older readers refuse: bank/half.py)')
+                        'values; format 5, which older readers refuse: bank/store.py)')
     b.add_argument('--sections', action='store_true',
                    help='with --views: keep complete objects and scans as two sections, each '
                         'with its own knobs chosen by CV (complete: --dims; scans: '
                         '--views-dims, CV on every --cv-every-th object), mixed at query time '
-                        'by a gate that tells complete objects from scans (bank/sections.py)')
+                        'by a gate that tells complete objects from scans (bank/builder.py)')
     b.add_argument('--views-dims', type=int, nargs='+', default=None,
                    help='with --sections: candidate PCA dims of the scan section (default: '
                         'as --dims)')
@@ -81,11 +81,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         f'{" ".join(map(str, DEFAULT_WEIGHTS))})')
     b.add_argument('--wide-lda', choices=('none', 'scans', 'all'), default='none',
                    help="let CV also weigh the head's LDA on every standardised encoder dim "
-                        'instead of the PCA dims (bank/head.py; stores a D x D precision for '
+                        'instead of the PCA dims (bank/model.py; stores a D x D precision for '
                         'enrollment, 5.2 MB at 1,620 dims): none, scans (the --sections scan '
                         'section only) or all')
     b.add_argument('--ridge', choices=('none', 'complete', 'all'), default='none',
-                   help='let CV also weigh a kernel ridge term in the head (bank/ridge.py; '
+                   help='let CV also weigh a kernel ridge term in the head (bank/discriminant.py; '
                         'per-entry coefficients, an (N, N) solve at build, banks or sections '
                         'of at most 16,000 entries): none, complete (the --sections complete '
                         'section, or a bank without sections) or all')
@@ -173,12 +173,12 @@ def _build(args: argparse.Namespace) -> int:
 
 def _build_sections(ds, cfg, args: argparse.Namespace, dims: list,  # noqa: ANN001
                     cv_subset, cache: Path | None, common: dict):  # noqa: ANN001, ANN202
-    """A two-section bank (bank/sections.py) from a views dataset, encoded once."""
+    """A two-section bank (bank/builder.py) from a views dataset, encoded once."""
     import numpy as np
     import torch
 
     from point_gn_ros.bank.builder import build_bank, encode_dataset
-    from point_gn_ros.bank.sections import RowsDataset, combine_sections
+    from point_gn_ros.bank.builder import RowsDataset, combine_sections
     from point_gn_ros.recognizer import make_encoder
 
     feats = encode_dataset(ds, make_encoder(cfg, args.device), cache_dir=cache)
@@ -224,7 +224,7 @@ def _report_input(ds, cfg, args: argparse.Namespace, dims: list) -> None:  # noq
                                f'(--strict), first: {skipped[0][0]}: {skipped[0][1]}')
     counts = Counter(int(label) for label in ds.labels)
     empty = [name for c, name in enumerate(ds.class_names) if not counts.get(c)]
-    if empty:   # the bank would be refused on load (bank/validate.py): say so now
+    if empty:   # the bank would be refused on load (bank/store.py): say so now
         raise DatasetError(f'{ds.path}: {len(empty)} class(es) have no examples in split '
                            f'{ds.split!r}: {", ".join(empty[:10])}'
                            + (' ...' if len(empty) > 10 else ''))
@@ -251,7 +251,7 @@ def describe_selection(meta: dict) -> list[str]:
     lines = []
     sel, head = meta.get('selection', {}), meta.get('head', {})
     if meta.get('matrix_dtype', 'float32') != 'float32':
-        lines.append(f'  fitted matrices stored as {meta["matrix_dtype"]} (bank/half.py)')
+        lines.append(f'  fitted matrices stored as {meta["matrix_dtype"]} (bank/store.py)')
     if sel:
         lines.append(f'  transform: standardize={sel.get("standardize")} '
                      f'dims={sel.get("dims") or "all"}; gamma={sel.get("gamma"):g}; '
@@ -273,7 +273,7 @@ def describe_selection(meta: dict) -> list[str]:
         ridge = head.get('ridge')
         if ridge and ridge.get('weight'):
             lines.append(f'  + {ridge["weight"]:g} x kernel ridge scores (kernel gamma '
-                         f'{ridge["gamma"]:g}, lambda {ridge["lambda"]:g}; bank/ridge.py)')
+                         f'{ridge["gamma"]:g}, lambda {ridge["lambda"]:g}; bank/discriminant.py)')
         elif ridge:
             lines.append('  kernel ridge term weighed by CV, not kept (no held-out gain)')
         vote = head.get('vote_cv_accuracy')
@@ -308,7 +308,7 @@ def _info(args: argparse.Namespace) -> int:
     from point_gn_ros.commands.enroll_cmd import resolve_bank
     bank = FeatureBank.load(resolve_bank(args.bank))
     if args.json:
-        print(json.dumps(bank.meta, indent=2, sort_keys=True))
+        print(json.dumps(bank.file_meta(), indent=2, sort_keys=True))
         return 0
     print(f'{bank.path}: {bank.summary()}')
     print('\n'.join(describe_selection(bank.meta)))
@@ -323,9 +323,13 @@ def _info(args: argparse.Namespace) -> int:
               f'scans right on the bank itself')
     if bank.objects is not None:
         o = bank.objects
-        print(f'  object test of taught classes (bank/objects.py): {len(o.means)} built '
+        print(f'  object test of taught classes (bank/model.py): {len(o.means)} built '
               f'objects, rank {o.rank}, shrinkage {o.alpha:g}, slope {o.lam:g}, offset '
               f'{o.theta:g}')
-    prov = bank.meta.get('provenance', {})
+    from point_gn_ros.bank.classifier import Classifier
+    path = Classifier(bank).path
+    print(f'  query path (CPU): {path["head"]} head, lone queries {path["lone"]}, '
+          f'{path["search"]} search')
+    prov = bank.provenance
     print(f'  created {prov.get("created", "?")}; classes: {", ".join(bank.class_names)}')
     return 0

@@ -17,9 +17,8 @@ from typing import Any
 
 # The roofline family (--profile) and the synthetic inputs live beside this module.
 from point_gn_ros.commands.bench_inputs import synthetic_bank, synthetic_clouds
-from point_gn_ros.commands.bench_roofline import PROFILE_SLOTS, profile_rows
+from point_gn_ros.commands.bench_roofline import PROFILE_SLOTS, Row, profile_rows
 
-Row = dict[str, Any]
 
 __all__ = ['PROFILE_SLOTS', 'Row', 'TABLE_HEADER', 'classifier_rows', 'encoder_rows',
            'format_rows', 'node_rows', 'profile_rows', 'register', 'resample_rows',
@@ -175,7 +174,7 @@ def classifier_rows(quick: bool, repeats: int, device: str) -> list[Row]:
     try:
         from point_gn_ros.bank.store import FeatureBank
         from point_gn_ros.bank.classifier import Classifier
-        from point_gn_ros.bank.transform import FeatureTransform
+        from point_gn_ros.bank.model import FeatureTransform
     except ImportError as exc:  # HOOK: classifier not available in this checkout
         return [dict(section='classifier', what='classifier', value=float('nan'), unit='ms',
                      note=f'skipped: {exc}')]

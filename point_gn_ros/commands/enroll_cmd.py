@@ -50,13 +50,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         '(core/fusion.py); refused if the views do not overlap')
     a.add_argument('--lda-debias', type=_share, default=2.0, metavar='F',
                    help="share of a wide LDA's mean-noise correction for a class this add "
-                        'creates (bank/lda.py lda_noise_trace): its LDA bias rises by F x '
+                        'creates (lda_noise_trace): its LDA bias rises by F x '
                         'tr(P Sigma) / (2 n) for its n examples; 0 = none, 0-2; with '
                         '--steal-budget, the most a class gets (default 2: train CV)')
     a.add_argument('--steal-budget', type=_budget, default=0.001, metavar='RHO',
                    help='give a class this add creates the largest share <= --lda-debias '
                         'whose predicted share of built-class examples called it stays <= '
-                        'RHO (bank/debias.py); 0 = the share itself, 0-0.5 (default 0.001: '
+                        'RHO (bank/discriminant.py); 0 = the share itself, 0-0.5 (default 0.001: '
                         'train CV)')
     _common(a)
     a.set_defaults(func=_add)
@@ -111,13 +111,12 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _policy(args: argparse.Namespace):
-    from point_gn_ros.bank.enroll import RefitPolicy
+    from point_gn_ros.bank.refit import RefitPolicy
     return RefitPolicy(gamma=args.gamma, calibration=args.calibration,
                        min_examples=args.min_examples, folds=args.folds,
                        lda_prior=args.lda_prior,
                        lda_debias=getattr(args, 'lda_debias', 0.0),
-                       lda_steal_budget=getattr(args, 'steal_budget', 0.0),
-                       ridge='full')   # offline: a kernel ridge term is refitted in full
+                       lda_steal_budget=getattr(args, 'steal_budget', 0.0))
 
 
 def _in_range(text: str, top: float) -> float:
@@ -131,12 +130,12 @@ def _in_range(text: str, top: float) -> float:
 
 
 def _share(text: str) -> float:
-    from point_gn_ros.bank.debias import MAX_SHARE
+    from point_gn_ros.bank.discriminant import MAX_SHARE
     return _in_range(text, MAX_SHARE)
 
 
 def _budget(text: str) -> float:
-    from point_gn_ros.bank.debias import MAX_BUDGET
+    from point_gn_ros.bank.discriminant import MAX_BUDGET
     return _in_range(text, MAX_BUDGET)
 
 
@@ -230,11 +229,11 @@ def _history(args: argparse.Namespace) -> int:
     print(f'{bank.path}: bank version {bank_version(bank)}, {len(bank)} entries, '
           f'{bank.num_classes} classes')
     print('  ' + ', '.join(f'{c} {n}' for c, n in class_counts(bank).items()))
-    for e in bank.meta.get('enrollments', []):
-        dups = f', {e["near_duplicates"]} near-duplicate(s)' if e.get('near_duplicates') else ''
-        aug = f' ({e["examples"]} examples, {e["augment"]})' if e.get('augment') else ''
-        print(f'  v{e["version"]} {e["time"]} {e["action"]} {e["class"]!r} x{e["count"]}'
-              f'{aug}{dups} ({e["source"]})')
+    for e in bank.enrollments:
+        dups = f', {e.near_duplicates} near-duplicate(s)' if e.near_duplicates else ''
+        aug = f' ({e.examples} examples, {e.augment})' if e.augment else ''
+        print(f'  v{e.version} {e.time} {e.action} {e.class_name!r} x{e.count}'
+              f'{aug}{dups} ({e.source})')
     refit = bank.meta.get('refit')
     if refit:
         print(f'  last refit (v{refit["version"]}): gamma {refit["gamma"]:g} '

@@ -238,7 +238,8 @@ def _teach(args: argparse.Namespace) -> int:
     """`point_gn fewshot DATASET --bank BANK`: the teach-and-query protocol."""
     import sys
 
-    from point_gn_ros.bank.enroll import BankFile, RefitPolicy
+    from point_gn_ros.bank.enroll import BankFile
+    from point_gn_ros.bank.refit import RefitPolicy
     from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD
     from point_gn_ros.commands.common import open_dataset_from_args
     from point_gn_ros.core.size import size_descriptors
@@ -254,10 +255,9 @@ def _teach(args: argparse.Namespace) -> int:
     feats = encode_clouds(clouds, enc, batch_size=args.batch_size,
                           progress=None if args.json else 'encoding')
     sizes = None if args.no_units else size_descriptors(clouds)
-    # `bank add`'s policy; a kernel ridge term is served without refit ('off', the node's
-    # immediate answer): its full refit takes minutes per class on the shipped bank.
-    policy = RefitPolicy(lda_prior='typical', lda_debias=2.0, lda_steal_budget=0.001,
-                         ridge='off')
+    # `bank add`'s policy (a kernel ridge term is refitted in full, as every published
+    # version has it)
+    policy = RefitPolicy(lda_prior='typical', lda_debias=2.0, lda_steal_budget=0.001)
     fit = DEFAULT_FIT_THRESHOLD if args.fit_threshold is None else args.fit_threshold
     vol = volume_rule(DEFAULT_VOLUME_THRESHOLD if args.volume_threshold is None
                       else args.volume_threshold)

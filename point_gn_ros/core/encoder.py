@@ -52,7 +52,7 @@ def spare_cpu() -> bool:
     """Whether a second CPU is likely free: the 1-minute load average leaves one spare.
 
     Checked at most once a second. What lets one piece of work take a second thread (a lone
-    cloud here, a lone query's coarse pass in bank/search.py) without taking a core from
+    cloud here, a lone query's coarse pass in bank/index.py) without taking a core from
     other work on a busy machine.
     """
     global _spare

@@ -14,7 +14,8 @@ import torch
 
 from point_gn_ros.bank.builder import fit_selected
 from point_gn_ros.bank.selection import select
-from point_gn_ros.bank.transform import Standardize
+from point_gn_ros.bank.model import Standardize
+from point_gn_ros.bank.vote import ExactSearch, reference_head
 
 PAPER_SETTINGS = ((5, 10), (5, 20), (10, 10), (10, 20))
 
@@ -59,7 +60,7 @@ def run_fewshot(labels: np.ndarray, encode: Callable[[np.ndarray], torch.Tensor]
         sel = select(s_raw, s_lab.numpy(), ways, standardize_options=standardize_options,
                      folds=folds, seed=seed)
         tf, head, bank = fit_selected(s_raw, s_lab.numpy(), ways, sel)
-        pred = head.evaluate(tf(q_raw), bank, s_lab, ways)[0].argmax(1)
+        pred = reference_head(head, tf(q_raw), ExactSearch(bank, s_lab, ways))[0].argmax(1)
         accs.append(float((pred == q_lab).float().mean()))
         heads.append({'vote_only': head.is_plain_vote, 'whitened': head.whiten is not None,
                       'fusion_weight': head.fusion_weight, 'fallback': sel.fallback})

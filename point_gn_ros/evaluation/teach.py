@@ -28,7 +28,8 @@ import numpy as np
 import torch
 
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples
+from point_gn_ros.bank.enroll import BankFile, add_examples
+from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.evaluation.openset import auroc
 
 

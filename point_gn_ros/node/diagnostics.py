@@ -28,8 +28,8 @@ class DiagnosticsBuilder:
     def build(self, name: str, snap: StatsSnapshot, settings: Settings,
               topic_names: Sequence[str], worker_alive: bool, bank: Any,
               unknown_threshold: float | None, input_problems: Sequence[str] = (),
-              state: str = 'active', input_values: Sequence[dict[str, Any]] = ()
-              ) -> DiagnosticArray:
+              state: str = 'active', input_values: Sequence[dict[str, Any]] = (),
+              query_path: dict[str, str] | None = None) -> DiagnosticArray:
         """DiagnosticArray (header unset) for node `name` (fully qualified).
 
         input_problems: per topic '' or why it is suspicious (no publisher / no message for
@@ -112,7 +112,8 @@ class DiagnosticsBuilder:
             'path': str(bank.path), 'entries': len(bank), 'classes': bank.num_classes,
             'single_view_entries': 0 if bank.views is None else len(bank.views),
             'num_points': bank.config.num_points, 'resample': s.resample, 'top_k': s.top_k,
-            'unknown_threshold': unknown_threshold or 0.0})
+            'unknown_threshold': unknown_threshold or 0.0,
+            **{f'query_{k}': v for k, v in (query_path or {}).items()}})
         statuses.append(bank_status)
         return DiagnosticArray(status=statuses)
 

@@ -51,7 +51,8 @@ class DiagnosticsMixin:
             self.get_fully_qualified_name(), snap, self.settings, self._pipeline.topic_names,
             self._worker is not None and self._worker.is_alive(), self.recognizer.bank,
             self.recognizer.classifier.unknown_threshold, self._input_problems(),
-            'active' if self._active else 'inactive', self._input_values())
+            'active' if self._active else 'inactive', self._input_values(),
+            self.recognizer.classifier.path)
         arr.status += [source(self.get_fully_qualified_name())
                        for source in self._diagnostic_sources]
         arr.header.stamp = self.get_clock().now().to_msg()

@@ -35,7 +35,7 @@ import torch
 
 from point_gn_ros.bank.enroll import EnrollError, EnrollResult
 from point_gn_ros.bank.live import LiveBank, Snapshot
-from point_gn_ros.bank.validate import class_name_problem
+from point_gn_ros.bank.store import class_name_problem
 from point_gn_ros.core.augment import variants_per_example
 from point_gn_ros.core.fusion import with_fused
 from point_gn_ros.core.threads import lower_priority, name_os_thread, trim_heap

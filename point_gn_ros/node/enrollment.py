@@ -58,9 +58,10 @@ from rclpy.task import Future as RclpyFuture
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from point_gn_ros.bank.debias import MAX_BUDGET, MAX_SHARE
-from point_gn_ros.bank.bank_file import remove_stale_temps
-from point_gn_ros.bank.enroll import BankFile, EnrollResult, RefitPolicy, predictable
+from point_gn_ros.bank.discriminant import MAX_BUDGET, MAX_SHARE
+from point_gn_ros.bank.enroll import remove_stale_temps
+from point_gn_ros.bank.enroll import BankFile, EnrollResult, predictable
+from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.bank.live import LiveBank, Snapshot
 from point_gn_ros.bank.refit import LDA_PRIORS
 from point_gn_ros.core.augment import AUGMENTS
@@ -125,15 +126,15 @@ ENROLL_PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                                     '(default: built classes keep theirs, each enrolled class '
                                     'gets their mean share).',
                          {'additional_constraints': "one of 'entries', 'balanced', 'typical'"}),
-    'enroll_lda_debias': (2.0, 'Share f of the mean-noise correction of a wide LDA (bank/lda.py '
-                               'lda_noise_trace) for classes created by enrollment: LDA bias += '
-                               'f tr(P Sigma) / (2 n); 0 = none; with enroll_steal_budget > 0, '
-                               'the most a class gets. Default 2: the choice of CV on the train '
-                               'split (README).',
+    'enroll_lda_debias': (2.0, 'Share f of the mean-noise correction of a wide LDA '
+                               '(bank/discriminant.py lda_noise_trace) for classes created by '
+                               'enrollment: LDA bias += f tr(P Sigma) / (2 n); 0 = none; with '
+                               'enroll_steal_budget > 0, the most a class gets. Default 2: the '
+                               'choice of CV on the train split (README).',
                           {'floating_point_range': [FloatingPointRange(
                               from_value=0.0, to_value=MAX_SHARE, step=0.0)]}),
     'enroll_steal_budget': (0.001, 'Steal budget rho of each class created by enrollment '
-                                   '(bank/debias.py): it gets the largest share <= '
+                                   '(bank/discriminant.py): it gets the largest share <= '
                                    'enroll_lda_debias whose predicted share of built-class '
                                    'examples called it stays <= rho; 0 = every such class gets '
                                    'enroll_lda_debias. Default 0.001: the train-CV choice.',
@@ -214,8 +215,7 @@ class Enrollment(ManagedEntity):
             # search index's basis is reused, not fitted again (~0.4 s of start-up CPU).
             self.live = LiveBank(BankFile.of_loaded(node.recognizer.bank),
                                  lambda bank: self._make_model(bank, node.recognizer), policy,
-                                 derive=self._make_model,
-                                 on_refit=lambda snap: node.replace_recognizer(snap.model))
+                                 derive=self._make_model)
             node.replace_recognizer(self.live.current().model)
         except (PointGNError, ValueError) as exc:
             log.error(f'enrollment: {exc}')
@@ -333,8 +333,6 @@ class Enrollment(ManagedEntity):
 
     def stop(self) -> None:
         """Stop enrolling now (node shutdown): pending work dropped, nothing published after."""
-        if self.live is not None:
-            self.live.on_refit = None
         if self.engine is not None:
             if not self.node.context.ok():     # /rosout is gone: a console-only logger
                 self.engine.set_log(rclpy.logging.get_logger(
@@ -345,7 +343,7 @@ class Enrollment(ManagedEntity):
         """A recognizer for one bank version, sharing the node's encoder.
 
         previous: the recognizer of the version before (an enrollment): its search index is
-        extended rather than rebuilt where that is exact (bank/search.py).
+        extended rather than rebuilt where that is exact (bank/index.py).
         """
         from point_gn_ros.bank.taught import fit_rule
         from point_gn_ros.core.surface import volume_rule

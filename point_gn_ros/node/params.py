@@ -12,6 +12,7 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
+from point_gn_ros.bank.classifier import unknown_rules
 from point_gn_ros.errors import PointGNError
 from point_gn_ros.node.frames import UP_AXES
 
@@ -194,7 +195,7 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                        '(indexed from 20,000 entries on the CPU).',
                {'additional_constraints': "one of 'auto', 'exact', 'indexed'"}),
     'object_test': (True, "Apply the bank's object test to classes taught by enrollment "
-                          '(bank/objects.py: a taught class gains on scans nearer its object '
+                          '(bank/model.py: a taught class gains on scans nearer its object '
                           'than any built one, loses on the others); false = the head alone. '
                           'Banks without one (format < 6): no effect.', {}),
     'metric_size': (True, 'Input clouds are in metres (z up after up_axis): their measured size '
@@ -307,17 +308,17 @@ def settings_from_values(values: dict[str, Any],
 
 
 def resolve_unknown_threshold(bank: Any, value: float) -> float | None:
-    """The effective open-set threshold: None when 0 (off); the bank's calibrated one if < 0.
+    """The probability threshold the Classifier applies for `value`.
 
-    Raises NodeConfigError when value < 0 and the bank holds no calibration.
+    As bank/classifier.py `unknown_rules` resolves it: None when off, or when the bank's
+    calibration thresholds novelty.
+
+    Raises NodeConfigError where the Classifier would refuse value (< 0, no calibration).
     """
-    if value >= 0:
-        return value or None
-    calib = bank.meta.get('unknown_calibration')
-    if not calib:
-        raise NodeConfigError(f'unknown_threshold={value:g} asks for the calibrated threshold, '
-                              f'but {bank.path} holds no calibration')
-    return float(calib['threshold'])
+    try:
+        return unknown_rules(bank, value).probability
+    except ValueError as exc:
+        raise NodeConfigError(str(exc)) from None
 
 
 def descriptors(allow_changes: bool = False) -> dict[str, tuple[Any, ParameterDescriptor]]:

@@ -23,7 +23,7 @@ import numpy as np
 from point_gn_ros.core.threads import name_os_thread
 from point_gn_ros.errors import DecodeError
 from point_gn_ros.node.frames import to_z_up
-from point_gn_ros.node.params import Settings, resolve_unknown_threshold
+from point_gn_ros.node.params import Settings
 from point_gn_ros.node.stats import NodeStats
 from point_gn_ros.node.work_queue import QueueItem, WorkQueue
 
@@ -124,7 +124,7 @@ class Pipeline:
         """Use new settings and/or another recognizer from the next batch on (any thread).
 
         The swap happens between batches, so a batch is never classified half with the old
-        and half with the new. The caller has validated both (resolve_unknown_threshold).
+        and half with the new. The caller has validated both (params.resolve_unknown_threshold).
         """
         with self._pending_lock:
             old_s, old_r = self._pending or (self.settings, self.recognizer)
@@ -137,8 +137,7 @@ class Pipeline:
             return
         settings, recognizer = pending
         recognizer.top_k = settings.top_k
-        recognizer.classifier.unknown_threshold = resolve_unknown_threshold(
-            recognizer.bank, settings.unknown_threshold)
+        recognizer.set_unknown_threshold(settings.unknown_threshold)
         self.settings, self.recognizer = settings, recognizer
 
     @property

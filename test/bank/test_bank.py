@@ -11,7 +11,7 @@ import torch
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.errors import BankError
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 
 
 def _bank(n: int = 30, classes: int = 3, dims: int | None = None) -> FeatureBank:

@@ -18,10 +18,10 @@ import torch
 
 import point_gn_ros.bank.classifier as classifier_mod
 
-from point_gn_ros.bank.bank_file import from_stored
-from point_gn_ros.bank.head import ExactSearch, _stored_codes, log_vote_shares
-from point_gn_ros.bank.quant import quantized
-from point_gn_ros.bank.search import BankIndex, IndexedSearch
+from point_gn_ros.bank.enroll import from_stored
+from point_gn_ros.bank.vote import ExactSearch, _stored_codes, log_vote_shares
+from point_gn_ros.bank.store import quantized
+from point_gn_ros.bank.index import BankIndex, IndexedSearch
 from point_gn_ros.commands.bench_cmd import synthetic_bank
 from point_gn_ros.core import kernels
 
@@ -93,7 +93,7 @@ def test_candidates_of_a_batch_are_each_querys_own(monkeypatch, bits: int) -> No
     for b in range(len(q)):
         assert np.array_equal(np.sort(many[b]), np.sort(index.candidates_for(q[b])))
     # a lone query split over two threads (large indexes): the same scores, hence candidates
-    import point_gn_ros.bank.search as search_mod
+    import point_gn_ros.bank.index as search_mod
     pool = search_mod.helper_thread()
     if pool is not None:
         used: list[int] = []
@@ -117,10 +117,9 @@ def test_candidates_of_a_batch_are_each_querys_own(monkeypatch, bits: int) -> No
     # and the search's votes: a query's row is the same alone and in the batch
     search = IndexedSearch(torch.from_numpy(feats), torch.from_numpy(labels), 12,
                            candidates=300, code_bits=bits)
-    logv, best = search.log_votes(torch.from_numpy(q), 60.0)
-    for b in range(len(q)):
-        lv1, b1 = search.log_votes(torch.from_numpy(q[b:b + 1]), 60.0)
-        assert torch.equal(lv1[0], logv[b]) and torch.equal(b1[0], best[b])
+    for b, (sims, rows_labels) in enumerate(search.batch_cosines(torch.from_numpy(q))):
+        sims1, labels1 = search.lone_cosines(q[b])
+        assert np.array_equal(sims1, sims) and np.array_equal(labels1, rows_labels)
 
 
 def test_exact_search_on_the_kernel_matches_torch_and_any_batch(lib) -> None:
@@ -194,7 +193,7 @@ def test_the_helper_thread_is_kept_off_its_callers_cpu() -> None:
     # scheduler tick: each use pins it to the process's other CPUs
     import os
 
-    from point_gn_ros.bank import helper as helper_mod
+    from point_gn_ros.bank import vote as helper_mod
 
     cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else []
     if len(cpus) < 2 or helper_mod._sched_getcpu is None:

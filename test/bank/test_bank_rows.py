@@ -1,4 +1,4 @@
-"""Bank rows appended in place (bank/rows.py): no version ever sees its rows change."""
+"""Bank rows appended in place (bank/store.py): no version ever sees its rows change."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import threading
 
 import torch
 
-from point_gn_ros.bank.rows import append_rows, with_room
+from point_gn_ros.bank.store import append_rows, with_room
 
 
 def test_append_shares_one_buffer_and_keeps_every_version() -> None:

@@ -23,12 +23,12 @@ import pytest
 import torch
 
 from point_gn_ros.bank import enroll as enroll_mod
-from point_gn_ros.bank.enroll import (MAX_HISTORY, BankFile, EnrollError, RefitPolicy,
-                                      add_examples, save_atomic)
-from point_gn_ros.bank.npz_read import BANK_MAX_BYTES
+from point_gn_ros.bank.enroll import BankFile, EnrollError, MAX_HISTORY, add_examples, save_atomic
+from point_gn_ros.bank.refit import RefitPolicy
+from point_gn_ros.bank.store import BANK_MAX_BYTES
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
-from point_gn_ros.bank.validate import MAX_CLASS_NAME, check_class_names
+from point_gn_ros.bank.model import FeatureTransform
+from point_gn_ros.bank.store import MAX_CLASS_NAME, check_class_names
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.errors import BankError
 
@@ -98,9 +98,9 @@ def test_2200_enrollments_then_save_and_load(tmp_path: Path) -> None:
         bf = add_examples(bf, _one(i), names[i % 4], source, policy).file
     meta = bf.bank.meta
     assert meta['bank_version'] == 2200
-    assert len(meta['enrollments']) == MAX_HISTORY
-    assert meta['enrollments_compacted'] == 2200 - MAX_HISTORY
-    assert meta['enrollments'][-1]['version'] == 2200
+    assert len(bf.bank.enrollments) == MAX_HISTORY
+    assert bf.bank.enrollments_compacted == 2200 - MAX_HISTORY
+    assert bf.bank.enrollments[-1].version == 2200
     back = FeatureBank.load(save_atomic(bf, tmp_path / 'b.npz'))
     assert len(back) == 20 + 2200 and back.meta['bank_version'] == 2200
     assert len(json.dumps(back.meta)) < 500_000
@@ -164,7 +164,7 @@ def test_temp_files_of_a_killed_save_are_removed_by_the_next(tmp_path: Path) -> 
 
 
 def test_the_temp_file_of_a_live_saver_is_kept(tmp_path: Path) -> None:
-    from point_gn_ros.bank.bank_file import remove_stale_temps
+    from point_gn_ros.bank.enroll import remove_stale_temps
     target = tmp_path / 'bank.npz'
     mine = tmp_path / f'.bank.npz.{os.getpid()}.7f.tmp.npz'
     other = tmp_path / f'.bank.npz.{os.getppid()}.7f.tmp.npz'   # a live process's

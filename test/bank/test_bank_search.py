@@ -1,4 +1,4 @@
-"""Two-stage bank search (bank/search.py) against the full float32 search."""
+"""Two-stage bank search (bank/index.py) against the full float32 search."""
 
 from __future__ import annotations
 
@@ -6,10 +6,30 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank.classifier import class_scores
-from point_gn_ros.bank.search import BankIndex, vote_shares
+from point_gn_ros.bank.index import BankIndex
+from point_gn_ros.bank.vote import log_vote_shares
 from point_gn_ros.commands.bench_cmd import synthetic_bank
 from point_gn_ros.core import kernels
+
+
+def vote_shares_ref(query: torch.Tensor, feats: torch.Tensor, labels: torch.Tensor,
+                    num_classes: int, gamma: float) -> torch.Tensor:
+    """The reference kernel-vote shares (bank/vote.py `log_vote_shares`): (B, C)."""
+    return log_vote_shares(query @ feats.T, labels, num_classes, gamma).exp()
+
+
+def index_shares(index: BankIndex, q: np.ndarray, gamma: float, exact: bool = False
+                 ) -> np.ndarray:
+    """Vote shares (B, C) of each query's candidates (every entry when exact)."""
+    q = index.check(q)
+    out = np.zeros((len(q), index.num_classes), np.float32)
+    for b, row in enumerate(q):
+        rows = None if exact else index.candidates_for(row)
+        sims = torch.from_numpy(index.dots(row, rows))[None]
+        labels = index.labels if rows is None else index.labels[rows]
+        out[b] = log_vote_shares(sims, torch.from_numpy(labels),
+                                 index.num_classes, gamma).exp()[0].numpy()
+    return out
 
 
 def _queries(feats: np.ndarray, count: int, noise: float, seed: int) -> np.ndarray:
@@ -21,23 +41,14 @@ def _queries(feats: np.ndarray, count: int, noise: float, seed: int) -> np.ndarr
     return (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
 
 
-def test_vote_shares_match_classifier() -> None:
-    feats, labels = synthetic_bank(2_000, 64, seed=1, classes=7)
-    q = _queries(feats, 5, 0.3, seed=2)
-    ref = class_scores(torch.from_numpy(q), torch.from_numpy(feats), torch.from_numpy(labels),
-                       7, 80.0).numpy()
-    got = np.stack([vote_shares(feats @ row, labels, 7, 80.0) for row in q])
-    np.testing.assert_allclose(got, ref, atol=1e-5)
-
-
 def test_all_candidates_is_exact() -> None:
     # every entry rescored: the two-stage result is the full search's, label for label
     feats, labels = synthetic_bank(3_000, 96, seed=3, classes=10)
     index = BankIndex(feats, labels, 10, coarse_dims=32, candidates=3_000)
     q = _queries(feats, 20, 0.5, seed=4)
-    exact = index.exact_scores(q, 50.0)
-    np.testing.assert_allclose(index.scores(q, 50.0), exact, atol=1e-5)
-    ref = class_scores(torch.from_numpy(q), torch.from_numpy(feats), torch.from_numpy(labels),
+    exact = index_shares(index, q, 50.0, exact=True)
+    np.testing.assert_allclose(index_shares(index, q, 50.0), exact, atol=1e-5)
+    ref = vote_shares_ref(torch.from_numpy(q), torch.from_numpy(feats), torch.from_numpy(labels),
                        10, 50.0).numpy()
     np.testing.assert_allclose(exact, ref, atol=1e-5)
 
@@ -54,7 +65,7 @@ def test_candidates_hold_the_nearest_entries() -> None:
         hits += sum(int(i) in cand for i in nearest)
     assert hits >= 0.95 * 30 * 10  # the coarse pass keeps (almost) all of the 10 nearest
     assert index.coarse_energy > 0.8
-    got, exact = index.scores(q, 100.0), index.exact_scores(q, 100.0)
+    got, exact = index_shares(index, q, 100.0), index_shares(index, q, 100.0, exact=True)
     assert (got.argmax(1) == exact.argmax(1)).all()
 
 
@@ -62,14 +73,14 @@ def test_batch_invariance_and_shapes() -> None:
     feats, labels = synthetic_bank(5_000, 128, seed=7)
     index = BankIndex(feats, labels, 40)
     q = _queries(feats, 6, 0.3, seed=8)
-    together = index.scores(q, 50.0)
-    alone = np.concatenate([index.scores(q[i:i + 1], 50.0) for i in range(len(q))])
+    together = index_shares(index, q, 50.0)
+    alone = np.concatenate([index_shares(index, q[i:i + 1], 50.0) for i in range(len(q))])
     assert np.array_equal(together, alone)
     assert together.shape == (6, 40)
     np.testing.assert_allclose(together.sum(1), 1.0, atol=1e-5)
-    assert index.scores(q[:0], 50.0).shape == (0, 40)
+    assert index_shares(index, q[:0], 50.0).shape == (0, 40)
     with pytest.raises(ValueError):
-        index.scores(q[:, :10], 50.0)
+        index_shares(index, q[:, :10], 50.0)
     with pytest.raises(ValueError):
         BankIndex(feats, labels[:10], 40)
 

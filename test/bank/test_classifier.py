@@ -4,11 +4,18 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank import head as head_mod
+from point_gn_ros.bank import vote as vote_mod
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.classifier import UNKNOWN, Classifier, class_scores
+from point_gn_ros.bank.classifier import Classifier, UNKNOWN
 from point_gn_ros.core.config import EncoderConfig
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
+from point_gn_ros.bank.vote import log_vote_shares
+
+
+def class_scores(query: torch.Tensor, feats: torch.Tensor, labels: torch.Tensor,
+                 num_classes: int, gamma: float) -> torch.Tensor:
+    """The reference kernel-vote shares (bank/vote.py `log_vote_shares`): (B, C)."""
+    return log_vote_shares(query @ feats.T, labels, num_classes, gamma).exp()
 
 
 def _bank(n: int = 200, classes: int = 5, gamma: float = 20.0, seed: int = 0,
@@ -48,7 +55,7 @@ def test_chunked_scores_equal_unchunked(monkeypatch: pytest.MonkeyPatch) -> None
     bank = _bank()
     q = torch.randn(50, bank.features.shape[1])
     full = Classifier(bank).scores(q)
-    monkeypatch.setattr(head_mod, '_MAX_BLOCK', 1000)  # 5 queries per block
+    monkeypatch.setattr(vote_mod, 'MAX_BLOCK', 1000)  # 5 queries per block
     assert torch.allclose(Classifier(bank).scores(q), full, atol=1e-6)
 
 
@@ -94,3 +101,41 @@ def test_class_scores_rows_sum_to_one_with_missing_class() -> None:
     labels = torch.zeros(10, dtype=torch.int64)  # class 1 has no entries
     s = class_scores(feats, feats, labels, 2, 10.0)
     assert torch.allclose(s[:, 0], torch.ones(10)) and (s[:, 1] == 0).all()
+
+
+def test_a_novelty_calibrated_bank_thresholds_novelty_everywhere() -> None:
+    """unknown_threshold < 0 on a bank whose calibration measures novelty.
+
+    The Classifier applies it as a novelty threshold, not a probability one, wherever it is
+    resolved.
+    """
+    from point_gn_ros.bank.classifier import unknown_rules
+    pytest.importorskip('rcl_interfaces')
+    from point_gn_ros.node.params import NodeConfigError, resolve_unknown_threshold
+
+    bank = _bank()
+    q = torch.randn(24, bank.features.shape[1])
+    novelty = Classifier(bank).classify(q).novelty
+    cut = float(np.median(novelty))
+    bank.meta['unknown_calibration'] = {'threshold': cut, 'measure': 'novelty',
+                                        'false_reject_rate': 0.05}
+    rules = unknown_rules(bank, -1)
+    assert rules.probability is None and rules.novelty == cut
+    clf = Classifier(bank, unknown_threshold=-1)
+    res = clf.classify(q)
+    assert ((res.labels == UNKNOWN) == (res.novelty > cut)).all()
+    assert 0 < (res.labels == UNKNOWN).sum() < len(q)
+    # the node's check and the live swap resolve it the same way (no probability threshold)
+    assert resolve_unknown_threshold(bank, -1) is None
+    other = Classifier(bank)
+    other.set_unknown_threshold(-1)
+    assert other.rules == clf.rules
+    assert np.array_equal(other.classify(q).labels, res.labels)
+    other.set_unknown_threshold(0.5)
+    assert other.rules.probability == 0.5 and other.rules.novelty is None
+    bank.meta.pop('unknown_calibration')
+    with pytest.raises(ValueError, match='calibrat'):
+        other.set_unknown_threshold(-1)
+    assert other.rules.probability == 0.5          # unchanged by the refused value
+    with pytest.raises(NodeConfigError, match='calibrat'):
+        resolve_unknown_threshold(bank, -1)

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank.classifier import (INDEX_MIN_ENTRIES, Classifier, make_search,
-                                          resolve_search)
+from point_gn_ros.bank.classifier import Classifier, INDEX_MIN_ENTRIES, make_search, resolve_search
 from point_gn_ros.bank.enroll import BankFile, add_examples
-from point_gn_ros.bank.head import _LOGIT_FLOOR, fit_head
-from point_gn_ros.bank.search import IndexedSearch
+from point_gn_ros.bank.model import Head, LOGIT_FLOOR
+from point_gn_ros.bank.vote import CompiledHead, reference_head
+from point_gn_ros.bank.discriminant import fit_head
+from point_gn_ros.bank.index import IndexedSearch
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.commands.bench_cmd import synthetic_bank
 from point_gn_ros.core.config import EncoderConfig
 
@@ -87,7 +88,7 @@ def test_indexed_matches_exact_within_the_omitted_votes() -> None:
     p_ex, nov_ex = exact.evaluate(raw)
     p_ix, nov_ix = indexed.evaluate(raw)
     u = exact.head.vote_space(exact.transform(raw)).numpy()
-    feats, floor = bank.features.numpy(), np.exp(_LOGIT_FLOOR)
+    feats, floor = bank.features.numpy(), np.exp(LOGIT_FLOOR)
     bounds = []
     for b in range(len(u)):
         sims = feats @ u[b]
@@ -126,12 +127,11 @@ def test_indexed_labels_do_not_depend_on_the_batch() -> None:
     np.testing.assert_array_equal(together.labels, [a.labels[0] for a in alone])
     np.testing.assert_allclose(together.probability,
                                np.concatenate([a.probability for a in alone]), atol=1e-6)
-    # the search itself is per query: identical vote-space rows give identical votes
+    # the search itself is per query: identical vote-space rows give identical cosines
     u = clf.head.vote_space(clf.transform(raw))
-    lv, best = clf.search.log_votes(u, clf.gamma)
-    for i in range(len(u)):
-        lv1, best1 = clf.search.log_votes(u[i:i + 1].clone(), clf.gamma)
-        assert torch.equal(lv1[0], lv[i]) and torch.equal(best1[0], best[i])
+    for i, (sims, labels) in enumerate(clf.search.batch_cosines(u)):
+        sims1, labels1 = clf.search.lone_cosines(u[i].numpy())
+        assert np.array_equal(sims1, sims) and np.array_equal(labels1, labels)
     assert clf.classify(torch.zeros(0, D)).labels.shape == (0,)
 
 
@@ -139,15 +139,16 @@ def test_classes_absent_from_bank_and_from_candidates() -> None:
     feats, labels = synthetic_bank(3_000, DIMS, seed=4, classes=6)
     labels = np.where(labels == 5, 4, labels)          # class 5: no entries
     u, y = torch.from_numpy(feats), torch.from_numpy(labels)
-    idx = make_search('indexed', u, y, 6)
-    exact = make_search('exact', u, y, 6)
-    lv_ix, _ = idx.log_votes(u[:8], 50.0)
-    lv_ex, _ = exact.log_votes(u[:8], 50.0)
-    assert torch.isneginf(lv_ix[:, 5]).all() and torch.isneginf(lv_ex[:, 5]).all()
+    head = Head(50.0)
+    tf = FeatureTransform.identity(DIMS)
+    idx = CompiledHead.build(tf, head, 6, make_search('indexed', u, y, 6))
+    p_ix, _ = idx.finish_rows(u[:8], u[:8])
+    p_ex, _ = reference_head(head, u[:8], make_search('exact', u, y, 6))
+    assert (p_ix[:, 5] == 0).all() and (p_ex[:, 5] == 0).all()
     # a class with no candidate still gets its floor votes, as in the full search
-    assert torch.isfinite(lv_ix[:, :5]).all()
-    assert torch.allclose(lv_ix[:, :5].exp(), lv_ex[:, :5].exp(), atol=1e-4)
-    assert torch.allclose(torch.logsumexp(lv_ix, dim=1), torch.zeros(8), atol=1e-5)
+    assert (p_ix[:, :5] > 0).all()
+    np.testing.assert_allclose(p_ix[:, :5], p_ex[:, :5].numpy(), atol=1e-4)
+    np.testing.assert_allclose(p_ix.sum(1), np.ones(8), atol=1e-5)
 
 
 def test_enrolled_version_of_a_large_bank_is_indexed_and_learns() -> None:

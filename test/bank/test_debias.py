@@ -1,11 +1,11 @@
-"""Enrolled classes' LDA mean-noise correction under a steal budget (bank/debias.py)."""
+"""Enrolled classes' LDA mean-noise correction under a steal budget (bank/discriminant.py)."""
 
 import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank.debias import steal_rates, taught_shares
-from point_gn_ros.bank.lda import lda_from_means
+from point_gn_ros.bank.discriminant import steal_rates, taught_shares
+from point_gn_ros.bank.discriminant import lda_from_means
 
 D, ALPHA = 12, 0.1
 

@@ -18,12 +18,12 @@ import pytest
 import torch
 
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.enroll import (BankFile, EnrollError, RefitPolicy, active_view,
-                                      add_examples, bank_version, class_counts, refit,
-                                      remove_class)
+from point_gn_ros.bank.enroll import (BankFile, EnrollError, add_examples, bank_version,
+                                      class_counts, remove_class)
+from point_gn_ros.bank.refit import RefitPolicy, active_view, refit
 from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 
 D = EncoderConfig().feature_dim
@@ -68,7 +68,7 @@ def test_add_new_class_is_predicted_and_old_bank_untouched() -> None:
     assert bank_version(bf.bank) == 0
     pred = Classifier(res.bank).classify(_queries(new_centre, 20, 2)).labels
     assert (pred == 4).all()
-    log = res.bank.meta['enrollments']
+    log = [e.to_json() for e in res.bank.enrollments]
     assert log == [{'version': 1, 'action': 'add', 'class': 'mug', 'count': 5,
                     'time': log[0]['time'], 'source': 'test', 'near_duplicates': 0}]
 
@@ -154,7 +154,7 @@ def test_save_load_is_bit_exact(tmp_path: Path, dtype: str) -> None:
     assert np.array_equal(back.stored, res.file.stored)
     assert back.bank.meta['stored_dtype'] == dtype
     assert back.stored.dtype == (np.int8 if dtype == 'int4' else dtype)
-    assert back.bank.meta['bank_version'] == 2 and len(back.bank.meta['enrollments']) == 2
+    assert back.bank.meta['bank_version'] == 2 and len(back.bank.enrollments) == 2
     q = torch.randn(50, D)
     a, b = Classifier(res.bank).classify(q), Classifier(back.bank).classify(q)
     assert np.array_equal(a.labels, b.labels) and np.array_equal(a.scores, b.scores)
@@ -228,7 +228,7 @@ def test_live_bank_readers_see_whole_versions() -> None:
     assert not bad
     final = live.current()
     assert final.version == 16 + 2 * 2                     # every write is a version
-    assert len(final.bank.meta['enrollments']) == final.version
+    assert len(final.bank.enrollments) == final.version
     assert len(seen) > 1
 
 
@@ -271,7 +271,7 @@ def test_sigkill_during_save_leaves_previous_bank(tmp_path: Path) -> None:
 @pytest.fixture(scope='module')
 def head_bank() -> tuple[BankFile, torch.Tensor]:
     """A bank with a discriminant head (whitened vote + 0.5 x LDA), 32 PCA dims."""
-    from point_gn_ros.bank.head import fit_head
+    from point_gn_ros.bank.discriminant import fit_head
 
     feats, labels, centres = _clusters(5, 24, seed=4, spread=0.8)
     tf = FeatureTransform.fit(feats, 'standardize', 32)
@@ -348,7 +348,7 @@ def test_head_recalibrated_at_kept_knobs(head_bank) -> None:  # noqa: ANN001
 
 def test_incremental_lda_refit_matches_a_full_refit() -> None:
     """ScatterStats updates give the LDA a full pass over the bank gives (bank > dims)."""
-    from point_gn_ros.bank.head import fit_head
+    from point_gn_ros.bank.discriminant import fit_head
 
     feats, labels, centres = _clusters(4, 20, seed=6, spread=0.8)
     tf = FeatureTransform.fit(feats, 'standardize', 16)
@@ -363,7 +363,7 @@ def test_incremental_lda_refit_matches_a_full_refit() -> None:
     fast = plain.with_stats()
     assert fast.stats is not None and plain.stats is None
     # computed in blocks of rows (a large bank's float64 rows never all at once): the same sums
-    with mock.patch('point_gn_ros.bank.bank_file._BLOCK_ROWS', 7):
+    with mock.patch('point_gn_ros.bank.enroll._BLOCK_ROWS', 7):
         blocked = plain.with_stats().stats
     for a, b in ((fast.stats.gram, blocked.gram), (fast.stats.sums, blocked.sums)):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

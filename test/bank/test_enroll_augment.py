@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank.enroll import (BankFile, EnrollError, RefitPolicy, add_examples,
-                                      class_counts, example_counts, predictable, remove_class)
+from point_gn_ros.bank.enroll import (BankFile, EnrollError, add_examples, class_counts,
+                                      predictable, remove_class)
+from point_gn_ros.bank.refit import RefitPolicy, example_counts
 from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.bank.refit import example_groups
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.augment import AUGMENTS, variants_per_example, yaw_variants
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.sampling import prepare
@@ -98,8 +99,8 @@ def test_d4_enrollment_holds_8x_entries_counts_examples(bank_and_shape, encoder,
     assert res.count == 24 and res.examples == 3 and class_counts(res.bank)['mine'] == 24
     assert example_counts(res.bank).tolist() == [8, 8, 8, 3]
     assert '3 example(s)' in res.describe() and '24 entries, d4' in res.describe()
-    entry = res.bank.meta['enrollments'][-1]
-    assert (entry['count'], entry['examples'], entry['augment']) == (24, 3, 'd4')
+    entry = res.bank.enrollments[-1]
+    assert (entry.count, entry.examples, entry.augment) == (24, 3, 'd4')
     # min_examples counts examples, not frames: 3 examples do not pass a gate of 4.
     assert 'mine' not in predictable(res.bank, 4) and 'mine' in predictable(res.bank, 3)
     # Each example's 8 frames form one CV group; built entries stay singletons.
@@ -112,7 +113,7 @@ def test_d4_enrollment_holds_8x_entries_counts_examples(bank_and_shape, encoder,
     assert example_counts(more.bank)[-1] == 4 and class_counts(more.bank)['mine'] == 25
     assert len(np.unique(example_groups(more.bank)[-25:])) == 4
     gone = remove_class(more.file, 'mine')
-    assert 'augmented_entries' not in gone.bank.meta or not gone.bank.meta['augmented_entries']
+    assert not gone.bank.augmented_entries
     assert example_groups(gone.bank) is None
     with pytest.raises(EnrollError, match='M \\* 8'):
         add_examples(bf, feats[:20], 'bad', augment='d4')

@@ -12,7 +12,7 @@ import torch
 from point_gn_ros.bank.enroll import BankFile, class_counts
 from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.views import simulate_views
 from point_gn_ros.node.enroll_engine import EnrollEngine
@@ -96,7 +96,7 @@ def test_guard_rails_and_capture(tmp_path: Path) -> None:
     _drain(eng, rec)
     assert class_counts(live.current().bank)['cup'] == 5
     assert 'capture of 5 object(s), 2 more over capture_max' in \
-        live.current().bank.meta['enrollments'][-1]['source']
+        live.current().bank.enrollments[-1].source
     ok, text = eng.forget('cup', 'test')
     assert ok and 'cup' not in live.current().class_names
     assert eng.forget('cup', 'test')[0] is False
@@ -159,7 +159,7 @@ def test_a_fused_capture_adds_the_union_and_its_scans(tmp_path: Path) -> None:
     _drain(eng, rec)
     assert class_counts(live.current().bank)['mug'] == 5 + 9 + 1
     assert sum(rec.calls) == 15 and max(rec.calls) <= 4          # still chunked
-    log = live.current().bank.meta['enrollments']
+    log = [e.to_json() for e in live.current().bank.enrollments]
     assert '5 views fused into 9 more examples' in log[-2]['source']
     assert eng.counters['fused'] == 1 and eng.counters['enrolled'] == 15
     assert not any('not fused' in w for w in warnings)   # (the fake features repeat)

@@ -1,4 +1,4 @@
-"""Float16 fitted matrices (format 5, bank/half.py): fitted rounded, exact in the file."""
+"""Float16 fitted matrices (format 5, bank/store.py): fitted rounded, exact in the file."""
 
 import json
 from dataclasses import replace
@@ -11,10 +11,10 @@ import torch
 from point_gn_ros.bank.builder import fit_selected
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, add_examples
-from point_gn_ros.bank.half import decode, encode, round_matrix
+from point_gn_ros.bank.store import decode, encode, round_matrix
 from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.bank.selection import select
-from point_gn_ros.bank.store import HALF_VERSION, FeatureBank
+from point_gn_ros.bank.store import FeatureBank, HALF_VERSION
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.errors import BankError
 
@@ -40,7 +40,7 @@ def _raw(per_class: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _bank(matrix_dtype: str) -> FeatureBank:
-    """PCA + whitened vote + wide LDA: every matrix bank/half.py stores, fitted on 30 / class."""
+    """PCA + whitened vote + wide LDA: every matrix stored in float16, fitted on 30 / class."""
     x, y = _raw(30, seed=1)
     sel = select(x, y.numpy(), C, gammas=(10.0, 40.0), standardize_options=('standardize',),
                  dims_options=(16,), alphas=(), folds=3)

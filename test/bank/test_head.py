@@ -9,13 +9,21 @@ import pytest
 import torch
 
 from point_gn_ros.bank.builder import fit_selected
-from point_gn_ros.bank.classifier import UNKNOWN, Classifier, class_scores
-from point_gn_ros.bank.head import CovarianceFit, Head, best_temperature, fit_head
+from point_gn_ros.bank.classifier import Classifier, UNKNOWN
+from point_gn_ros.bank.discriminant import CovarianceFit, best_temperature, fit_head
+from point_gn_ros.bank.model import Head
 from point_gn_ros.bank.selection import calibrate_novelty, select
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
+from point_gn_ros.bank.vote import ExactSearch, log_vote_shares, reference_head
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.errors import BankError
+
+
+def class_scores(query: torch.Tensor, feats: torch.Tensor, labels: torch.Tensor,
+                 num_classes: int, gamma: float) -> torch.Tensor:
+    """The reference kernel-vote shares (bank/vote.py `log_vote_shares`): (B, C)."""
+    return log_vote_shares(query @ feats.T, labels, num_classes, gamma).exp()
 
 
 def _gaussians(per_class: int, seed: int = 0, d: int = 6, classes: int = 4
@@ -140,7 +148,7 @@ def test_cv_falls_back_to_the_vote_with_one_example_per_class() -> None:
     assert not sel.whiten_vote and sel.fusion_weight == 0 and sel.temperature == 1.0
     tf, head, bank = fit_selected(x.float(), y.numpy(), 6, sel)
     assert head.is_plain_vote
-    pred = head.evaluate(tf(x.float()), bank, y, 6)[0].argmax(1)
+    pred = reference_head(head, tf(x.float()), ExactSearch(bank, y, 6))[0].argmax(1)
     assert torch.equal(pred, y)
 
 
@@ -200,26 +208,16 @@ def test_calibrated_novelty_threshold_rejects_far_objects() -> None:
 def test_plain_head_is_the_vote() -> None:
     z = torch.nn.functional.normalize(torch.randn(30, 8), dim=1)
     y = torch.arange(30) % 3
-    prob, nov = Head(10.0).evaluate(z[:5], z, y, 3)
+    prob, nov = reference_head(Head(10.0), z[:5], ExactSearch(z, y, 3))
     assert torch.allclose(prob, class_scores(z[:5], z, y, 3, 10.0), atol=1e-5)
     assert torch.allclose(nov, torch.zeros(5), atol=1e-5)
-
-
-def test_gamma_grid_by_squaring_equals_one_exp_per_gamma() -> None:
-    from point_gn_ros.bank.head import log_vote_shares, log_vote_shares_grid
-    z = torch.nn.functional.normalize(torch.randn(40, 8), dim=1)
-    y = torch.arange(40) % 4
-    sims = z[:10] @ z[10:].T
-    gammas = (5.0, 10.0, 20.0, 40.0, 7.0, 14.0)
-    for g, got in zip(gammas, log_vote_shares_grid(sims, y[10:], 4, gammas), strict=True):
-        assert torch.allclose(got, log_vote_shares(sims, y[10:], 4, g), atol=1e-4)
 
 
 def test_classes_without_entries_get_probability_zero() -> None:
     x, y, _, _ = _gaussians(12, classes=3)
     sel = select(x.float(), y.numpy(), 5, gammas=(5.0, 50.0))       # classes 3, 4: empty
     tf, head, bank = fit_selected(x.float(), y.numpy(), 5, sel)
-    prob, _ = head.evaluate(tf(x.float()), bank, y, 5)
+    prob, _ = reference_head(head, tf(x.float()), ExactSearch(bank, y, 5))
     assert torch.isfinite(prob).all() and (prob[:, 3:] < 1e-6).all()
     assert torch.allclose(prob.sum(1), torch.ones(len(y)), atol=1e-5)
     if head.lda_bias is not None:

@@ -1,4 +1,4 @@
-"""The object-level test of taught classes (bank/objects.py): fit, shift, file, enrollment."""
+"""The object-level test of taught classes (bank/model.py): fit, shift, file, enrollment."""
 
 from dataclasses import replace
 from pathlib import Path
@@ -8,10 +8,11 @@ import pytest
 import torch
 
 from point_gn_ros.bank.classifier import Classifier
+from point_gn_ros.bank.discriminant import fit_object_test
 from point_gn_ros.bank.enroll import BankFile, add_examples, remove_class
-from point_gn_ros.bank.objects import ObjectShift, ObjectTest
-from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import ObjectShift, ObjectTest
+from point_gn_ros.bank.store import FeatureBank, objects_arrays, objects_from_arrays
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.cli import main
 from point_gn_ros.errors import BankError
 from point_gn_ros.recognizer import encode_clouds, make_encoder
@@ -34,7 +35,7 @@ def _synthetic() -> tuple[ObjectTest, dict[str, torch.Tensor]]:
         rows.append(_scans(centres[o % 3], g))
         groups += [o] * SCANS
         labels += [o % 3] * SCANS
-    test = ObjectTest.fit(torch.cat(rows), np.array(groups), np.array(labels),
+    test = fit_object_test(torch.cat(rows), np.array(groups), np.array(labels),
                           ['a', 'b', 'c'], rank=12, alpha=0.01)
     taught = _scans(centres[0], g, 15)
     other = _scans(centres[0], g, 10)          # an unseen object of the same category
@@ -56,7 +57,7 @@ def test_fit_whitens_the_scatter_of_scans_around_their_object() -> None:
     assert test.projection.shape == (12, D) and test.means.shape == (36, 12)
     assert test.counts.tolist() == [SCANS] * 36 and test.labels.tolist() == [0, 1, 2] * 12
     with pytest.raises(ValueError, match='2 scans'):
-        ObjectTest.fit(torch.randn(4, D), np.arange(4), np.zeros(4), ['a'])
+        fit_object_test(torch.randn(4, D), np.arange(4), np.zeros(4), ['a'])
 
 
 def test_scans_of_the_taught_object_are_boosted_other_objects_damped() -> None:
@@ -79,17 +80,17 @@ def test_scans_of_the_taught_object_are_boosted_other_objects_damped() -> None:
 
 def test_arrays_round_trip_and_refuse_what_does_not_fit() -> None:
     test, _ = _synthetic()
-    back = ObjectTest.from_arrays(test.arrays(), D)
+    back = objects_from_arrays(objects_arrays(test), D)
     for name in ('projection', 'means', 'labels', 'counts'):
         assert torch.equal(getattr(back, name), getattr(test, name))
     assert (back.class_names, back.lam, back.theta) == (test.class_names, test.lam, test.theta)
     with pytest.raises(ValueError, match='do not fit'):
-        ObjectTest.from_arrays(test.arrays(), D + 1)
-    bad = dict(test.arrays(), objects_labels=np.full(36, 7, np.int32))
+        objects_from_arrays(objects_arrays(test), D + 1)
+    bad = dict(objects_arrays(test), objects_labels=np.full(36, 7, np.int32))
     with pytest.raises(ValueError, match='out of range'):
-        ObjectTest.from_arrays(bad, D)
+        objects_from_arrays(bad, D)
     with pytest.raises(ValueError, match='missing'):
-        ObjectTest.from_arrays({k: v for k, v in test.arrays().items()
+        objects_from_arrays({k: v for k, v in objects_arrays(test).items()
                                 if k != 'objects_counts'}, D)
 
 

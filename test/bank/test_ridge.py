@@ -1,20 +1,22 @@
-"""The head's kernel ridge term (bank/ridge.py): fit, enrollment steps, file, classifier."""
+"""The head's kernel ridge term: fit, enrollment steps, file, classifier."""
 
 from dataclasses import replace
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from point_gn_ros.bank import ridge
 from point_gn_ros.bank.builder import fit_selected
 from point_gn_ros.bank.classifier import Classifier
+from point_gn_ros.bank.discriminant import fit_ridge
 from point_gn_ros.bank.enroll import BankFile, add_examples, remove_class
 from point_gn_ros.bank.live import LiveBank
 from point_gn_ros.bank.refit import RefitPolicy, active_view
 from point_gn_ros.bank.selection import select
 from point_gn_ros.bank.store import FeatureBank, RIDGE_VERSION
+from point_gn_ros.bank.vote import ridge_scores
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.errors import BankError
 
@@ -52,13 +54,13 @@ def _ridge_bank(dtype: str = 'int4') -> tuple[FeatureBank, torch.Tensor]:
 
 def test_fit_solves_the_regularised_kernel_system() -> None:
     rows, y = _unit(50), torch.arange(50) % 4
-    a = ridge.fit(rows, y, 4, gamma=1.5, lam=0.05).double()
+    a = fit_ridge(rows, y, 4, gamma=1.5, lam=0.05).double()
     k = torch.exp(1.5 * (rows.double() @ rows.double().T - 1))
     residual = (k + 0.05 * torch.eye(50, dtype=torch.float64)) @ a \
         - torch.nn.functional.one_hot(y, 4).double()
     assert float(residual.abs().max()) < 1e-5
     # The scores of the bank's own rows nearly reproduce their labels.
-    s = ridge.ridge_scores(rows @ rows.T, a.float(), 1.5)
+    s = ridge_scores(rows @ rows.T, a.float(), 1.5)
     assert (s.argmax(1) == y).all()
 
 
@@ -118,28 +120,25 @@ def test_ridge_head_always_searches_exactly() -> None:
                       search='indexed').search_kind == 'indexed'
 
 
-def test_enrollment_serves_the_head_without_the_term_until_it_is_refitted() -> None:
+def test_every_enrollment_publishes_the_ridge_term_fitted() -> None:
     bank, q = _ridge_bank()
     new = _raw(torch.zeros(8, dtype=torch.int64), seed=5) + 0.4 * torch.rand(D)
     res = add_examples(BankFile.of(bank), new, 'mine', policy=RefitPolicy(gamma='keep'))
     fb = res.file.bank
-    assert not fb.head.has_ridge and fb.head.temperature == 0.5   # the CV fallback T
-    assert ridge.is_pending(fb.meta) and 'pending' in fb.meta['refit']['ridge']
-    done = ridge.refit_pending(fb)
-    assert done.head.has_ridge and done.head.temperature == 2.0 and not ridge.is_pending(
-        done.meta)
-    assert torch.equal(done.head.ridge_coef, ridge.fit(fb.features, fb.labels, C + 1, 1.0, 0.01))
-    assert done.meta['bank_version'] == fb.meta['bank_version'] + 1
+    assert fb.head.has_ridge and fb.head.temperature == bank.head.temperature
+    assert 'pending' not in fb.meta['head']['ridge']
+    assert fb.meta['refit']['ridge'] == 'refitted in full'
+    assert torch.equal(fb.head.ridge_coef, fit_ridge(fb.features, fb.labels, C + 1, 1.0, 0.01))
 
 
 def test_full_policy_refits_and_save_restart_answers_the_same(tmp_path: Path) -> None:
     bank, q = _ridge_bank()
     new = _raw(torch.zeros(8, dtype=torch.int64), seed=5) + 0.4 * torch.rand(D)
-    full = RefitPolicy(min_examples=1, gamma='keep', ridge='full')
+    full = RefitPolicy(min_examples=1, gamma='keep')
     res = add_examples(BankFile.of(bank), new, 'mine', policy=full)
     fb = res.file.bank
     assert fb.head.ridge_coef.shape == (len(bank) + 8, C + 1)
-    assert torch.equal(fb.head.ridge_coef, ridge.fit(fb.features, fb.labels, C + 1, 1.0, 0.01))
+    assert torch.equal(fb.head.ridge_coef, fit_ridge(fb.features, fb.labels, C + 1, 1.0, 0.01))
     probe = torch.cat([q, new[:3]])
     before = Classifier(fb).evaluate(probe)
     assert (before[0][len(q):].argmax(1) == C).all()     # the taught class is predicted
@@ -151,29 +150,51 @@ def test_full_policy_refits_and_save_restart_answers_the_same(tmp_path: Path) ->
     assert torch.equal(gone.file.bank.head.ridge_coef, bank.head.ridge_coef)
 
 
-def test_live_bank_refits_a_pending_ridge_in_the_background(tmp_path: Path) -> None:
+def test_live_bank_publishes_versions_with_the_ridge_fitted(tmp_path: Path) -> None:
     bank, q = _ridge_bank()
     live = LiveBank(BankFile.of(bank), Classifier, RefitPolicy(gamma='keep'))
     new = _raw(torch.zeros(8, dtype=torch.int64), seed=5) + 0.4 * torch.rand(D)
     res = live.add(new, 'mine', 'test')
-    assert not res.file.bank.head.has_ridge            # answered at once without the term
-    assert live.wait_refit(120)
     snap = live.current()
-    assert snap.version == res.version + 1 and snap.bank.head.has_ridge
-    assert not ridge.is_pending(snap.bank.meta)
+    assert snap.version == res.version and snap.bank.head.has_ridge
     assert torch.equal(snap.bank.head.ridge_coef,
-                       ridge.fit(snap.bank.features, snap.bank.labels, C + 1, 1.0, 0.01))
+                       fit_ridge(snap.bank.features, snap.bank.labels, C + 1, 1.0, 0.01))
     assert (snap.model.evaluate(new[:3])[0].argmax(1) == C).all()
-    # A bank saved while the refit was pending starts it again when loaded.
-    res.file.save(tmp_path / 'pending.npz')
-    again = LiveBank(BankFile.load(tmp_path / 'pending.npz'), Classifier)
-    assert again.wait_refit(120) and again.current().bank.head.has_ridge
+    # what the node answers is what the saved file answers once loaded
+    back = FeatureBank.load(res.file.save(tmp_path / 'enrolled.npz'))
+    probe = torch.cat([q, new[:3]])
+    assert torch.equal(Classifier(back).evaluate(probe)[0], snap.model.evaluate(probe)[0])
+
+
+def test_a_file_with_its_ridge_refit_pending_loads_fitted(tmp_path: Path) -> None:
+    """An older writer could save an enrollment's ridge term unfitted (marked pending)."""
+    bank, q = _ridge_bank()
+    new = _raw(torch.zeros(8, dtype=torch.int64), seed=5) + 0.4 * torch.rand(D)
+    fitted = add_examples(BankFile.of(bank), new, 'mine', policy=RefitPolicy(gamma='keep'))
+    fb = fitted.file.bank
+    meta = json.loads(json.dumps(fb.meta))
+    meta['head']['ridge'].update(pending=True, weight=0.0, weight_pending=fb.head.ridge_weight,
+                                 temperature=fb.head.temperature, gamma=fb.head.ridge_gamma,
+                                 **{'lambda': fb.head.ridge_lambda})
+    legacy = replace(fb, meta=meta, head=replace(fb.head, ridge_coef=None, ridge_weight=0.0,
+                                                 temperature=0.5))
+    path = legacy.save(tmp_path / 'pending.npz', dtype='float32')
+    back = FeatureBank.load(path)
+    assert back.head.has_ridge and back.head.temperature == fb.head.temperature
+    assert 'pending' not in back.meta['head']['ridge']
+    assert torch.equal(back.head.ridge_coef, fit_ridge(back.features, back.labels, C + 1, 1.0,
+                                                       0.01))
+    probe = torch.cat([q, new[:3]])
+    # fitted on the loaded (re-normalised) rows: the same answers up to that rounding
+    loaded, fitted = Classifier(back).evaluate(probe)[0], Classifier(fb).evaluate(probe)[0]
+    torch.testing.assert_close(loaded, fitted, atol=1e-4, rtol=0)
+    assert torch.equal(loaded.argmax(1), fitted.argmax(1))
 
 
 def test_active_view_keeps_rows_and_ridge_coefficients_aligned() -> None:
     bank, _ = _ridge_bank()
     res = add_examples(BankFile.of(bank), _raw(torch.zeros(2, dtype=torch.int64), seed=7),
-                       'few', policy=RefitPolicy(min_examples=3, ridge='full'))
+                       'few', policy=RefitPolicy(min_examples=3))
     view = active_view(res.file.bank, 3)
     assert len(view) == len(bank) and view.head.ridge_coef.shape[0] == len(bank)
     Classifier(view).evaluate(_raw(torch.arange(2), seed=8))

@@ -1,4 +1,4 @@
-"""The coarse pass over packed 4-bit codes (core/kernels/bank/pgn_scan_i4.c, index_basis.py).
+"""The coarse pass over packed 4-bit codes (core/kernels/bank/pgn_scan_i4.c, bank/index.py).
 
 The kernel's integers must equal the plain product of the unpacked codes with the query in
 every build: the one -march=native picks here, and the AVX2, AVX-512 without VNNI and
@@ -15,7 +15,7 @@ from conftest import KERNEL_BUILDS, kernel_build
 import numpy as np
 import pytest
 
-from point_gn_ros.bank.index_basis import pack_codes, unpack_codes
+from point_gn_ros.bank.index import pack_codes, unpack_codes
 from point_gn_ros.core import kernels
 
 # widths: one 16-byte chunk, a 48-byte one, 2 full chunks, 64 + 64 + 16 (the scan

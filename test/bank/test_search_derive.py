@@ -13,15 +13,17 @@ import pytest
 import torch
 
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.enroll import BankFile, RefitPolicy, add_examples, remove_class
-from point_gn_ros.bank.head import fit_head
+from point_gn_ros.bank.enroll import BankFile, add_examples, remove_class
+from point_gn_ros.bank.refit import RefitPolicy
+from point_gn_ros.bank.discriminant import fit_head
 from point_gn_ros.bank.live import LiveBank
-from point_gn_ros.bank.search import BASIS_DRIFT, BankIndex, IndexedSearch, _project
+from point_gn_ros.bank.index import BASIS_DRIFT, BankIndex, IndexedSearch, _project
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
+from point_gn_ros.bank.model import FeatureTransform
 from point_gn_ros.commands.bench_cmd import synthetic_bank
 from point_gn_ros.core import kernels
 from point_gn_ros.core.config import EncoderConfig
+from point_gn_ros.bank.vote import CompiledHead
 
 D = EncoderConfig().feature_dim
 DIMS = 96
@@ -37,7 +39,9 @@ def _same_index(a: BankIndex, b: BankIndex, queries: np.ndarray) -> None:
     assert np.array_equal(a.features, b.features) and a.num_classes == b.num_classes
     for q in queries:
         assert np.array_equal(np.sort(a.candidates_for(q)), np.sort(b.candidates_for(q)))
-    assert np.array_equal(a.scores(queries, 50.0), b.scores(queries, 50.0))
+    for q in queries:
+        rows = np.sort(a.candidates_for(q))
+        assert np.array_equal(a.dots(q, rows), b.dots(q, rows))
 
 
 @needs_kernels
@@ -63,7 +67,8 @@ def test_appended_rows_give_the_fresh_index_on_the_same_basis() -> None:
     fresh = BankIndex(feats2, labels2, 9, candidates=256, basis=base.basis)
     _same_index(derived, fresh, np.concatenate([new[:5], feats[:5]]))
     # the new class is found by its own examples, like the float32 search finds it
-    assert (derived.scores(new, 50.0).argmax(1) == 8).all()
+    assert all(derived.labels[rows[np.argmax(derived.dots(q, rows))]] == 8
+               for q in new for rows in [derived.candidates_for(q)])
     # more rows of an existing class chain on the same basis
     more, _ = _rows(10, seed=4)
     feats3 = np.concatenate([feats2, more])
@@ -160,6 +165,8 @@ def test_enrollment_versions_classify_as_a_fresh_build_on_the_same_basis() -> No
         ref = Classifier(res.bank, search='exact')          # same head, any search object
         ref.search = IndexedSearch(ref.features, ref.labels, res.bank.num_classes,
                                    basis=basis)
+        ref.compiled_head = CompiledHead.build(ref.transform, ref.head, res.bank.num_classes,
+                                               ref.search)
         q = torch.cat([q_new, q_old])
         a, b = clf.classify(q), ref.classify(q)
         assert np.array_equal(a.labels, b.labels) and np.array_equal(a.probability,

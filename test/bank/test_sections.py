@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from point_gn_ros.bank.classifier import Classifier
+from point_gn_ros.bank.discriminant import fit_gate
 from point_gn_ros.bank.enroll import BankFile, add_examples, remove_class
-from point_gn_ros.bank.gate import Gate
-from point_gn_ros.bank.store import FeatureBank, to_stored
+from point_gn_ros.bank.store import FeatureBank, gate_arrays, gate_from_arrays, to_stored
 from point_gn_ros.cli import main
 from point_gn_ros.errors import BankError
 from point_gn_ros.recognizer import encode_clouds, make_encoder
@@ -33,16 +33,16 @@ def test_gate_tells_two_populations_apart_and_validates_its_arrays() -> None:
     b = torch.randn(200, 20, generator=g) + torch.linspace(0, 2, 20)
     feats = torch.cat([a, b])
     is_scan = np.r_[np.zeros(200, bool), np.ones(200, bool)]
-    gate = Gate.fit(feats, is_scan, dims=None)
+    gate = fit_gate(feats, is_scan, dims=None)
     p = gate.scan_probability(feats).numpy()
     assert ((p > 0.5) == is_scan).mean() > 0.95
-    again = Gate.from_arrays(gate.arrays(), 20)
+    again = gate_from_arrays(gate_arrays(gate), 20)
     np.testing.assert_allclose(again.scan_probability(feats).numpy(), p, atol=1e-6)
-    bad = dict(gate.arrays(), gate_coef=np.zeros((3, 20), np.float32))
+    bad = dict(gate_arrays(gate), gate_coef=np.zeros((3, 20), np.float32))
     with pytest.raises(ValueError, match='gate_coef'):
-        Gate.from_arrays(bad, 20)
+        gate_from_arrays(bad, 20)
     with pytest.raises(ValueError, match='complete objects and scans'):
-        Gate.fit(feats, np.zeros(400, bool))
+        fit_gate(feats, np.zeros(400, bool))
 
 
 def test_sections_bank_cli_build_info_eval_enroll(three_class_tree: Path, tmp_path: Path,

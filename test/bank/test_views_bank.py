@@ -5,7 +5,7 @@ import numpy as np
 
 from point_gn_ros.bank.builder import build_bank
 from point_gn_ros.bank.classifier import Classifier
-from point_gn_ros.bank.sections import RowsDataset, combine_sections
+from point_gn_ros.bank.builder import RowsDataset, combine_sections
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.datasets.views import ViewsDataset
 from point_gn_ros.recognizer import encode_clouds, make_encoder

@@ -1,4 +1,4 @@
-"""Wide LDA (bank/head.py): the head's LDA on every standardised dim, chosen by CV.
+"""Wide LDA (bank/model.py Head): the head's LDA on every standardised dim, chosen by CV.
 
 Kept through the bank file and refitted in closed form by enrollment.
 """
@@ -12,7 +12,7 @@ import torch
 from point_gn_ros.bank.builder import fit_selected
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, add_examples, remove_class
-from point_gn_ros.bank.lda import lda_from_means, lda_noise_trace
+from point_gn_ros.bank.discriminant import lda_from_means, lda_noise_trace
 from point_gn_ros.bank.refit import RefitPolicy
 from point_gn_ros.bank.selection import select
 from point_gn_ros.bank.store import FeatureBank

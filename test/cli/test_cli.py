@@ -35,6 +35,9 @@ def test_bank_build_and_info(bank: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(['bank', 'info', str(bank)]) == 0
     out = capsys.readouterr().out
     assert '24 entries, 3 classes' in out and 'gamma' in out and 'chair' in out
+    from point_gn_ros.core import kernels
+    head = 'compiled' if kernels.load() is not None else 'reference'
+    assert f'query path (CPU): {head} head' in out and 'exact search' in out
     assert main(['bank', 'info', str(bank), '--json']) == 0
     meta = json.loads(capsys.readouterr().out)
     assert meta['provenance']['count'] == 24 and meta['provenance']['split'] == 'train'
@@ -123,7 +126,7 @@ def test_scanobjectnn_bank_uses_sigma_03(tmp_path: Path) -> None:
                  '--folds', '2', '-o', str(out)]) == 0
     from point_gn_ros.bank.store import FeatureBank
     bank = FeatureBank.load(out)
-    assert bank.config.sigma == 0.3 and bank.meta['provenance']['format'] == 'scanobjectnn_h5'
+    assert bank.config.sigma == 0.3 and bank.provenance['format'] == 'scanobjectnn_h5'
     assert len(bank.class_names) == 15 and len(bank) == int(keep.sum())
 
 

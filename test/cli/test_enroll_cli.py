@@ -33,7 +33,7 @@ def test_add_files_then_remove(small_bank_path: Path, tmp_path: Path,
     assert "added 6 example(s) to new class 'toolbox'" in text and 'v1' in text
     bf = BankFile.load(out)
     assert bf.bank.class_names[-1] == 'toolbox' and class_counts(bf.bank)['toolbox'] == 6
-    assert bf.bank.meta['enrollments'][0]['source'].startswith('point_gn bank add: files:')
+    assert bf.bank.enrollments[0].source.startswith('point_gn bank add: files:')
     assert len(BankFile.load(small_bank_path).bank.class_names) == 40     # input untouched
     # Another view of the same object is now a toolbox.
     view = obj[rng.permutation(len(obj))[:600]] + 5.0
@@ -49,7 +49,7 @@ def test_add_files_then_remove(small_bank_path: Path, tmp_path: Path,
     assert "removed 6 entries of class 'toolbox'" in capsys.readouterr().out
     back = BankFile.load(out)
     assert 'toolbox' not in back.bank.class_names and back.bank.meta['bank_version'] == 3
-    assert [e['action'] for e in back.bank.meta['enrollments']] == ['add', 'add', 'remove']
+    assert [e.action for e in back.bank.enrollments] == ['add', 'add', 'remove']
     assert main(['bank', 'history', str(out)]) == 0
     text = capsys.readouterr().out
     assert 'bank version 3' in text and 'v1 ' in text and "add 'toolbox' x6" in text
@@ -136,7 +136,7 @@ def test_add_fused_views_of_one_object(small_bank_path: Path, tmp_path: Path,
     assert "added 14 example(s) to new class 'toolbox'" in capsys.readouterr().out
     bank = BankFile.load(out).bank
     assert class_counts(bank)['toolbox'] == 14
-    assert '5 views fused into 9 more examples' in bank.meta['enrollments'][0]['source']
+    assert '5 views fused into 9 more examples' in bank.enrollments[0].source
     # Views of a moving frame cannot be fused: refused in one line, nothing written.
     for i, v in enumerate(views):
         np.save(folder / f'view_{i}.npy', v.points + np.float32([4.0 * i, 0.0, 0.0]))
@@ -164,7 +164,7 @@ def test_add_files_in_a_y_up_frame(small_bank_path: Path, tmp_path: Path,
     # The y-up file, told its up axis, is enrolled as the z-up object is (same entry)...
     same = taught('z_up')
     assert torch.equal(taught('y_up', '--up', 'y'), same)
-    assert BankFile.load(tmp_path / 'y_up.npz').bank.meta['enrollments'][0]['source'] \
+    assert BankFile.load(tmp_path / 'y_up.npz').bank.enrollments[0].source \
         .endswith('(up y)')
     # ... and not so when it is read as z up (a lying object).
     assert not torch.allclose(taught('y_up'), same, atol=1e-3)

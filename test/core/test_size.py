@@ -191,7 +191,7 @@ def test_node_enrollment_engine_keeps_the_recognizers_measured_sizes(tmp_path: P
     from point_gn_ros.bank.enroll import BankFile
     from point_gn_ros.bank.live import LiveBank
     from point_gn_ros.bank.store import FeatureBank
-    from point_gn_ros.bank.transform import FeatureTransform
+    from point_gn_ros.bank.model import FeatureTransform
     from point_gn_ros.core.config import EncoderConfig
     from point_gn_ros.core.size import size_descriptors
     from point_gn_ros.node.enroll_engine import EnrollEngine
@@ -238,7 +238,7 @@ def test_the_classifiers_fit_rule_makes_an_answer_outside_its_size_region_unknow
     from point_gn_ros.bank.classifier import Classifier
     from point_gn_ros.bank.enroll import BankFile, add_examples
     from point_gn_ros.bank.store import FeatureBank
-    from point_gn_ros.bank.transform import FeatureTransform
+    from point_gn_ros.bank.model import FeatureTransform
     from point_gn_ros.core.config import EncoderConfig
     from point_gn_ros.core.size import size_descriptors
 

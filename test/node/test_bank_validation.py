@@ -18,8 +18,8 @@ import torch
 from node_testing import NodeProcess
 
 from point_gn_ros.bank.store import FeatureBank
-from point_gn_ros.bank.transform import FeatureTransform
-from point_gn_ros.bank.validate import META_MAX_BYTES, META_MAX_DEPTH, parse_meta
+from point_gn_ros.bank.model import FeatureTransform
+from point_gn_ros.bank.store import META_MAX_BYTES, META_MAX_DEPTH, parse_meta
 from point_gn_ros.cli import main as cli_main
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.errors import BankError

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from point_gn_ros.bank.classifier import Classification
+from point_gn_ros.bank.classifier import Classification, unknown_rules
 from point_gn_ros.node.frames import UpConvention
 from point_gn_ros.node.params import PARAMETERS, settings_from_values
 from point_gn_ros.node.pipeline import Answer, Job, Pipeline
@@ -34,6 +34,10 @@ class _FakeRecognizer:
     def __init__(self, names: list[str]) -> None:
         self.class_names, self.bank, self.classifier = names, _Bank(), _Classifier()
         self.top_k, self.seen = 5, []
+
+    def set_unknown_threshold(self, value: float | None) -> None:
+        """As Recognizer's: the classifier resolves it (bank/classifier.py unknown_rules)."""
+        self.classifier.unknown_threshold = unknown_rules(self.bank, value).probability
 
     def classify_clouds(self, clouds: list[np.ndarray]) -> Classification:
         self.seen += [c.copy() for c in clouds]

@@ -466,7 +466,7 @@ def pack_nibbles(codes: np.ndarray) -> np.ndarray:
     Byte b of each group of 16 codes holds code b (low nibble) and code 8 + b (high), + 8:
     one 8-byte load gives two 8-lane steps of pgn_dots.c in index order. (The index's coarse
     codes pair slices of 64 for integer dot products, and bank files pair neighbours:
-    bank/index_basis.py, bank/quant.py.)
+    bank/index.py, bank/store.py.)
     """
     n, d = codes.shape
     if d % 16 or codes.dtype != np.int8:

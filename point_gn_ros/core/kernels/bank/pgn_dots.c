@@ -1,5 +1,5 @@
 /* Exact dot products of a batch of queries with every bank row: the classifier's exact
- * kernel vote (bank/head.py ExactSearch).
+ * kernel vote (bank/vote.py ExactSearch).
  *
  * pgn_dots_f32: out[b * n + i] = <feats[i], q[b]>, float32 rows.
  * pgn_dots_i8:  out[b * n + i] = <codes[i], q[b]> / norms[i], the int8 codes of a bank

@@ -1,4 +1,4 @@
-/* Row-wise projection for bank/search.py's int8 index: out = x @ rot.
+/* Row-wise projection for bank/index.py's int8 index: out = x @ rot.
  *
  * Each output element is sum_k x[i, k] * rot[k, j] added in k order with separate multiply
  * and add (compiled without fast-math and with -ffp-contract=off: no reassociation, no FMA

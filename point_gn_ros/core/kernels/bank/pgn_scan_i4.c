@@ -1,8 +1,8 @@
-/* The coarse pass of bank/search.py over packed 4-bit codes: half the bytes of int8.
+/* The coarse pass of bank/index.py over packed 4-bit codes: half the bytes of int8.
  *
  * A row of r codes in [-7, 7] (r a multiple of 32) is r / 2 bytes, in chunks of up to 64
  * bytes: in a chunk of L bytes starting at byte b, byte b + t holds code 2b + t + 8 in its
- * low 4 bits and code 2b + L + t + 8 in its high 4 bits (bank/index_basis.py `pack_codes`
+ * low 4 bits and code 2b + L + t + 8 in its high 4 bits (bank/index.py `pack_codes`
  * writes it). Each chunk's low and high halves then meet contiguous slices of the int8
  * query, so unpacking is an AND and a shift, and a chunk is two unsigned x signed byte dot
  * products (vpdpbusd where the CPU has VNNI). score = sum (u - 8) q = sum u q - 8 sum q.

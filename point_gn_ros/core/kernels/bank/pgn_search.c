@@ -1,4 +1,4 @@
-/* Bank scans for point_gn_ros/bank/search.py: one thread, deterministic.
+/* Bank scans for point_gn_ros/bank/index.py: one thread, deterministic.
  *
  * pgn_scan_i8: int8 dot products of a query with every code row (the coarse pass of the
  * two-stage search: a quarter of the bytes of float32 at a quarter of the width, so the
@@ -16,7 +16,7 @@
 #endif
 
 /* out[i] = sum_j codes[i * r + j] * q[j]; codes (n, r) int8, codes and q in [-127, 127]
- * (what bank/search.py writes: the AVX2 path's int16 pair sums then cannot saturate). */
+ * (what bank/index.py writes: the AVX2 path's int16 pair sums then cannot saturate). */
 void pgn_scan_i8(const int8_t *codes, int64_t n, int64_t r, const int8_t *q, int32_t *out) {
 #if defined(__AVX512BW__)
     if (r % 32 == 0 && r <= 512) {

@@ -10,10 +10,10 @@ this core's ~28 GB/s). Instead:
    dot products are unchanged), the leading `coarse_dims` coordinates kept as 4-bit codes
    (8 with `code_bits=8`; a scale per coordinate; as many coordinates as hold 90 % of the
    bank's energy); one int32 dot product per entry with the query's int8 codes reads an
-   eighth of the bytes per coordinate kept (pgn_scan4.c; pgn_search.c at 8 bits);
+   eighth of the bytes per coordinate kept (pgn_scan_i4.c; pgn_search.c at 8 bits);
 2. the `candidates` best coarse scores are rescored exactly (float32, the full rows);
-3. votes come from those candidates only; every other entry's vote counts as 0
-   (`BankIndex.scores`) or as the classifier's floor exp(-80) (`IndexedSearch`).
+3. votes come from those candidates only; every other entry's vote counts as the vote's
+   floor exp(LOGIT_FLOOR) of the best entry (bank/vote.py `CompiledHead.finish`).
 
 Entries outside the candidates are far enough below the best that their votes barely
 count; when one would have changed the label, the labels differ: `bench` and
@@ -25,25 +25,167 @@ kept, the new rows' codes are computed alone; pgn_project.c makes a row's projec
 independent of the batch), identical to a fresh build on that basis. A fresh basis is
 fitted when the rows changed otherwise or drifted by `BASIS_DRIFT` since it was fitted.
 
-Use: `IndexedSearch` is the classifier's vote for large banks (bank/classifier.py picks
-it by bank size, `search='auto'`); `BankIndex.scores` gives plain vote shares like
-`classifier.class_scores`, for scripts and benchmarks.
+`IndexedSearch` is the classifier's vote search for large banks (bank/classifier.py picks
+it by bank size, search='auto'); `CompiledHead` (bank/vote.py) finishes its candidates.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 import threading
+from typing import Any
 
 import numpy as np
 import torch
 
-from point_gn_ros.bank.head import _LOGIT_FLOOR, _TINY
-from point_gn_ros.bank.helper import helper_thread
-# The coarse coordinates (re-exported: scripts and tests import them from here).
-from point_gn_ros.bank.index_basis import (COARSE_BITS, COARSE_ENERGY, IndexBasis,  # noqa: F401
-                                           _project)
+from point_gn_ros.bank.vote import helper_thread
 from point_gn_ros.core import kernels
 from point_gn_ros.core.encoder import spare_cpu
+
+# ---- the coarse coordinates: principal axes and integer scales
+# IndexBasis rotates vote-space rows onto the bank's leading principal axes (an orthogonal
+# rotation: dot products unchanged) and keeps the leading coordinates as 4-bit (packed two a
+# byte, `pack_codes`) or 8-bit integer codes; `_project` computes each row's coordinates
+# independently of the rows beside it (pgn_project.c), so an index's appended codes equal a
+# fresh build's.
+
+# Default coarse width: the fewest coordinates (a multiple of 32) holding this share of the
+# bank's energy (512 of 640 for the shipped, whitened, bank).
+COARSE_ENERGY = 0.9
+# Bits a coarse code: 4 (codes in [-7, 7], half the bytes of 8) or 8 ([-127, 127]). On the
+# shipped scan section 4 bits keep 8 bits' labels against the exact search
+# (benchmarks/search_agreement.py) at about half the coarse pass's time.
+COARSE_BITS = 4
+_CODE_TOP = {4: 7, 8: 127}      # bits -> the largest |code|
+# Rows used to find the principal axes (a sample: the rotation only steers the coarse
+# pass, the rescoring is exact whatever it is).
+_PCA_ROWS = 20_000
+# Rows per block when quantizing or encoding many rows (bounds the float temporaries).
+_BLOCK_ROWS = 8192
+
+
+class IndexBasis:
+    """The coarse pass's coordinates: the bank's leading principal axes, integer scales.
+
+    rotation (d, r) float32 orthonormal columns; scale (r,) float32 per coordinate (a
+    coordinate's largest |value| over the rows it was fitted on maps to the largest code,
+    7 or 127); energy: share of those rows' squared norms on the r coordinates; rows: how
+    many rows it was fitted on; bits: 4 or 8 a code.
+    """
+
+    def __init__(self, rotation: np.ndarray, scale: np.ndarray, energy: float, rows: int,
+                 bits: int = COARSE_BITS) -> None:
+        if bits not in _CODE_TOP:
+            raise ValueError(f'coarse codes have 4 or 8 bits, got {bits}')
+        self.rotation, self.scale, self.energy, self.rows = rotation, scale, energy, rows
+        self.bits = bits
+
+    @classmethod
+    def fit(cls, feats: np.ndarray, coarse_dims: int | None, lib: Any,
+            bits: int = COARSE_BITS) -> tuple['IndexBasis', np.ndarray]:
+        """Fit on feats (N, d) float32 -> (basis, the rows' coordinates (N, r) float32)."""
+        n, d = feats.shape
+        # Principal axes of the (uncentred) second moment: they carry the most of every
+        # dot product, so the leading coordinates approximate the cosines best.
+        # In torch, on its thread budget (the node's torch_threads): numpy's BLAS threads
+        # spin-wait on a loaded machine, which made a build cost several times its work.
+        sample = torch.from_numpy(feats[::max(1, n // _PCA_ROWS)])
+        evals, evecs = torch.linalg.eigh((sample.T @ sample).double())
+        evals, evecs = evals.flip(0).clamp_min(0.0), evecs.flip(1)      # descending
+        if coarse_dims is None:
+            share = (evals.cumsum(0) / evals.sum().clamp_min(1e-30)).numpy()
+            coarse_dims = 32 * (int(np.searchsorted(share, COARSE_ENERGY - 1e-9)) // 32 + 1)
+        r = min(d, max(32, coarse_dims // 32 * 32))
+        order = torch.arange(r)
+        rotation = evecs[:, order].float().contiguous().numpy()          # (d, r)
+        # share of the bank's squared norms on the coarse coordinates: the closer to 1,
+        # the better the coarse pass ranks
+        energy = float(evals[order].sum() / evals.sum().clamp_min(1e-30))
+        z = _project(feats, rotation, lib)
+        # The largest |value| by blocks of rows: no second (N, r) float32 temporary.
+        top = np.zeros(r, np.float32)
+        for i in range(0, n, _BLOCK_ROWS):
+            np.maximum(top, np.abs(z[i:i + _BLOCK_ROWS]).max(axis=0), out=top)
+        scale = np.maximum(top, 1e-12) / _CODE_TOP[bits]                     # (r,)
+        return cls(rotation, scale, energy, n, bits), z
+
+    @property
+    def dims(self) -> int:
+        return int(self.rotation.shape[1])
+
+    def quantize(self, z: np.ndarray) -> np.ndarray:
+        """Coordinates (M, r) float32 -> stored codes, saturated at the largest code.
+
+        (M, r) int8 at 8 bits, (M, r / 2) uint8 (`pack_codes`) at 4. In blocks of rows: a
+        large bank's float temporaries stay small.
+        """
+        top, r = _CODE_TOP[self.bits], z.shape[1]
+        out = np.empty((len(z), r if self.bits == 8 else r // 2), np.int8 if self.bits == 8
+                       else np.uint8)
+        for i in range(0, len(z), _BLOCK_ROWS):
+            blk = z[i:i + _BLOCK_ROWS] / self.scale
+            np.rint(blk, out=blk)
+            codes = np.clip(blk, -top, top, out=blk).astype(np.int8)
+            out[i:i + _BLOCK_ROWS] = pack_codes(codes) if self.bits == 4 else codes
+        return out
+
+    def unpacked(self, codes: np.ndarray) -> np.ndarray:
+        """Stored codes -> (M, r) int8 code values (no copy at 8 bits)."""
+        return unpack_codes(codes, self.dims) if self.bits == 4 else codes
+
+    def encode(self, feats: np.ndarray, lib: Any) -> np.ndarray:
+        """Rows (M, d) float32 -> stored codes (see quantize); the same rows in any batch."""
+        if len(feats) <= _BLOCK_ROWS:
+            return self.quantize(_project(feats, self.rotation, lib))
+        return np.concatenate([self.encode(feats[i:i + _BLOCK_ROWS], lib)
+                               for i in range(0, len(feats), _BLOCK_ROWS)])
+
+
+# Packed 4-bit rows, in chunks of up to 64 bytes: in a chunk of L bytes starting at byte
+# b, byte b + t holds code 2b + t in its low 4 bits and code 2b + L + t in its high ones, each
+# + 8. So a chunk's two halves meet contiguous slices of the query (pgn_scan_i4.c).
+_PACK_CHUNK = 64
+
+
+def pack_codes(codes: np.ndarray) -> np.ndarray:
+    """(M, r) int8 codes in [-8, 7], r a multiple of 32 -> (M, r / 2) uint8 packed rows."""
+    m, r = codes.shape
+    if r % 32:
+        raise ValueError(f'4-bit codes need a multiple of 32 a row, got {r}')
+    u = (codes.astype(np.int16) + 8).astype(np.uint8)
+    out, p = np.empty((m, r // 2), np.uint8), r // 2
+    for b in range(0, p, _PACK_CHUNK):
+        n = min(_PACK_CHUNK, p - b)
+        out[:, b:b + n] = u[:, 2 * b:2 * b + n] | (u[:, 2 * b + n:2 * b + 2 * n] << 4)
+    return out
+
+
+def unpack_codes(packed: np.ndarray, dims: int) -> np.ndarray:
+    """pack_codes's inverse: (M, dims / 2) uint8 -> (M, dims) int8."""
+    out, p = np.empty((packed.shape[0], dims), np.int8), dims // 2
+    for b in range(0, p, _PACK_CHUNK):
+        n = min(_PACK_CHUNK, p - b)
+        out[:, 2 * b:2 * b + n] = (packed[:, b:b + n] & 15).astype(np.int8) - 8
+        out[:, 2 * b + n:2 * b + 2 * n] = (packed[:, b:b + n] >> 4).astype(np.int8) - 8
+    return out
+
+
+def _project(feats: np.ndarray, rotation: np.ndarray, lib: Any) -> np.ndarray:
+    """Rows feats (N, d) @ rotation (d, r) -> (N, r) float32.
+
+    With the C kernels each row's result does not depend on the others (pgn_project.c), so
+    an index's appended codes equal a fresh build's; torch's GEMM otherwise.
+    """
+    if lib is None:
+        return (torch.from_numpy(feats) @ torch.from_numpy(rotation)).numpy()
+    feats = np.ascontiguousarray(feats, dtype=np.float32)
+    out = np.empty((feats.shape[0], rotation.shape[1]), np.float32)
+    lib.pgn_project_f32(feats.ctypes.data, feats.shape[0], feats.shape[1],
+                        rotation.ctypes.data, rotation.shape[1], out.ctypes.data)
+    return out
+
+
+# ---- the two-stage index
 
 # Entries rescored exactly per query. 512 left up to 5 of 2,468 single-view labels
 # different from the exact search on the shipped bank even at full width; 1,024 none.
@@ -55,20 +197,6 @@ SPLIT_MIN_ROWS = 20_000
 # its basis until this share of the rows it was fitted on was appended or removed; then the
 # next version fits a fresh one. (20 new examples on the 39k-entry scan section: 0.05 %.)
 BASIS_DRIFT = 0.1
-
-
-def vote_shares(sims: np.ndarray, labels: np.ndarray, num_classes: int,
-                gamma: float) -> np.ndarray:
-    """Kernel-vote shares like classifier.votes_from_similarity, for one query.
-
-    sims: (M,) cosines of the entries that vote; labels: (M,) int -> (C,) float32, sums
-    to 1. Evaluated in the log domain (the best entry weighs exp(0)) so large gammas
-    do not underflow.
-    """
-    logits = (sims.astype(np.float64) - 1.0) * gamma
-    w = np.exp(logits - logits.max())
-    votes = np.bincount(labels, weights=w, minlength=num_classes)
-    return (votes / votes.sum()).astype(np.float32)
 
 
 def _check_rows(features: np.ndarray, labels: np.ndarray, num_classes: int
@@ -115,6 +243,7 @@ class BankIndex:
         self.candidates = max(1, int(candidates))
         self._lib = kernels.load()
         self._local = threading.local()
+        self.compiled = self._lib is not None
         if basis is None:
             self.basis, z = IndexBasis.fit(feats, coarse_dims, self._lib, code_bits)
             self.codes = self.basis.quantize(z)
@@ -166,6 +295,7 @@ class BankIndex:
         out = object.__new__(BankIndex)
         out.features, out.labels, out.num_classes = feats, labels, int(num_classes)
         out.candidates, out._lib, out._local = self.candidates, self._lib, threading.local()
+        out.compiled = self.compiled
         out.basis, out.codes, out.changed = self.basis, codes, self.changed + abs(n1 - n0)
         return out
 
@@ -232,9 +362,9 @@ class BankIndex:
         """coarse[:B] = codes . q8 (B, r) for every entry: one pass for the batch.
 
         A lone query against a large index scans the second half of the rows on the helper
-        thread (bank/helper.py) while this one scans the first, when a CPU is to spare (as
-        for a lone cloud, core/encoder.py `spare_cpu`): the pass is bound by memory, which
-        two cores read faster. Integer sums: the same scores either way.
+        thread (bank/vote.py `helper_thread`) while this one scans the first, when a CPU is
+        to spare (as for a lone cloud, core/encoder.py `spare_cpu`): the pass is bound by
+        memory, which two cores read faster. Integer sums: the same scores either way.
         """
         n, r, nq = self.codes.shape[0], self.coarse_dims, len(q8)
         lib = self._lib
@@ -262,7 +392,7 @@ class BankIndex:
             bufs = self._local.bufs = (np.empty((batch, n), np.int32), np.empty(n, np.int64))
         return bufs
 
-    def _dots(self, q: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+    def dots(self, q: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
         """Exact float32 cosines of q (d,) with the given rows (all when None)."""
         if self._lib is None:
             return (self.features if rows is None else self.features[rows]) @ q
@@ -273,39 +403,17 @@ class BankIndex:
                                out.ctypes.data)
         return out
 
-    def _check(self, query: np.ndarray) -> np.ndarray:
+    def check(self, query: np.ndarray) -> np.ndarray:
         q = np.ascontiguousarray(np.asarray(query, dtype=np.float32))
         if q.ndim != 2 or q.shape[1] != self.features.shape[1]:
             raise ValueError(f'expected queries (B, {self.features.shape[1]}), got {q.shape}')
         return q
 
-    def scores(self, query: np.ndarray, gamma: float) -> np.ndarray:
-        """Two-stage vote shares: query (B, d) unit rows -> (B, C) float32, rows sum to 1.
-
-        Each query is searched alone, so a result never depends on the batch.
-        """
-        q = self._check(query)
-        out = np.empty((q.shape[0], self.num_classes), np.float32)
-        for b, rows in enumerate(self.candidates_many(q) if len(q) else ()):
-            out[b] = vote_shares(self._dots(q[b], rows), self.labels[rows], self.num_classes,
-                                 gamma)
-        return out
-
-    def exact_scores(self, query: np.ndarray, gamma: float) -> np.ndarray:
-        """Reference: every entry votes, float32 cosines. (B, d) -> (B, C) float32."""
-        q = self._check(query)
-        return np.stack([vote_shares(self._dots(row, None), self.labels, self.num_classes,
-                                     gamma) for row in q]) if len(q) else \
-            np.zeros((0, self.num_classes), np.float32)
-
 
 class IndexedSearch:
-    """The head's kernel vote (`head.VoteSearch`) from a BankIndex's candidates.
+    """The vote's cosines (bank/vote.py `VoteSearch`) from a BankIndex's candidates.
 
-    Same semantics as `head.log_vote_shares` over the whole bank, evaluated on the
-    candidates of each query.
-
-    Every entry outside a query's candidates counts the floor vote exp(_LOGIT_FLOOR) of
+    Every entry outside a query's candidates counts the floor vote exp(LOGIT_FLOOR) of
     the best entry, exactly as an entry that far below the best does in the full search;
     classes absent from the bank get -inf. Each query is searched alone, so its result
     never depends on the batch. bank_u: (N, d) vote-space unit rows; bank_labels: (N,).
@@ -341,27 +449,25 @@ class IndexedSearch:
 
     def _adopt(self, index: BankIndex) -> None:
         self.index, self.num_classes = index, index.num_classes
-        self.counts = np.bincount(index.labels, minlength=self.num_classes)   # (C,)
-        self.absent = self.counts == 0
 
-    def log_votes(self, u: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """u: (B, d) vote-space unit rows -> log vote shares (B, C), best cosine (B,)."""
-        q = self.index._check(u.detach().cpu().float().numpy())
-        c, floor, nq = self.num_classes, float(np.exp(_LOGIT_FLOOR)), q.shape[0]
-        if nq == 0:
-            return torch.zeros(0, c).to(u.device), torch.zeros(0).to(u.device)
-        rows = self.index.candidates_many(q)                             # (B, M)
-        sims = np.stack([self.index._dots(q[b], rows[b]) for b in range(nq)])   # float32
-        lab = self.index.labels[rows]                                    # (B, M)
-        best = sims.max(axis=1)
-        w = np.exp(np.maximum((sims.astype(np.float64) - best[:, None]) * gamma, _LOGIT_FLOOR))
-        # one bincount over (query, class) bins: each query's sums in its own entries' order
-        flat = (lab + c * np.arange(nq)[:, None]).ravel()
-        votes = np.bincount(flat, weights=w.ravel(), minlength=nq * c).reshape(nq, c)
-        seen = np.bincount(flat, minlength=nq * c).reshape(nq, c)
-        votes += (self.counts - seen) * floor                            # the others
-        logv = np.log(np.maximum(votes, _TINY))
-        logv[:, self.absent] = -np.inf
-        logv -= np.logaddexp.reduce(logv, axis=1, keepdims=True) if c else 0.0
-        return (torch.from_numpy(logv.astype(np.float32)).to(u.device),
-                torch.from_numpy(best).to(u.device))
+    @property
+    def compiled(self) -> bool:
+        """Whether the index's scans are compiled (the compiled head needs them)."""
+        return self.index.compiled
+
+    @property
+    def label_array(self) -> np.ndarray:
+        return self.index.labels
+
+    def lone_cosines(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """u: (d,) -> exact cosines (M,) of its candidates, their labels (M,)."""
+        rows = self.index.candidates_many(u[None])[0]
+        return self.index.dots(u, rows), np.ascontiguousarray(self.index.labels[rows])
+
+    def batch_cosines(self, u: torch.Tensor) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """u: (B, d) -> per row, its candidates' cosines and labels (as `lone_cosines`)."""
+        q = self.index.check(u.detach().cpu().float().numpy())
+        if not len(q):
+            return
+        for b, rows in enumerate(self.index.candidates_many(q)):
+            yield self.index.dots(q[b], rows), np.ascontiguousarray(self.index.labels[rows])
