@@ -7,7 +7,7 @@ PYTHONPATH (so one venv may serve both), and reports every figure's median over 
 for A and B and their ratio B / A. Figures in msg/s or clouds/s are rates: a ratio above 1
 is faster there; for times (ms) below 1 is faster.
 
-    python benchmarks/ab_bench.py /work/main /work/wt44k --rounds 3
+    python benchmarks/ab_bench.py ../start-checkout . --rounds 3
     python benchmarks/ab_bench.py OLD NEW --rounds 3 --sections encoder classifier node \
         --json ab.json -- --repeats 3
 

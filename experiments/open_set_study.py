@@ -12,7 +12,7 @@ without the widening. Measured on:
              their other views (taught) and every view of the left-out class (unseen)
              classified: share rejected by the region (the answered class's) of each
   mn40       ModelNet40 TRAIN, one single-view scan of 25 objects a class at a plausible
-             real size (size prior x 0.8-1.25, as experiments/size_knob_study.py):
+             real size (size prior x 0.8-1.25; size_knob_study.sized_train_scans):
              (a) built classes, shipped bank: share of the scans outside their answer's region;
              (b) taught: 10 classes, 5 scans each taught, --folds folds: share of those
                  classes' other scans outside their answer's region
@@ -33,13 +33,11 @@ from point_gn_ros.bank.builder import encode_dataset
 from point_gn_ros.bank.classifier import Classifier
 from point_gn_ros.bank.enroll import BankFile, add_examples
 from point_gn_ros.bank.refit import RefitPolicy
-from point_gn_ros.bank.taught import (KEY, REGION_CHI2, REGION_QUANTILE, loo_distances,
-                                      plausible_scale)
+from point_gn_ros.bank.taught import KEY, REGION_CHI2, REGION_QUANTILE, loo_distances
 from point_gn_ros.core.size import size_descriptors
-from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset
-from point_gn_ros.datasets.views import ViewsDataset
 from point_gn_ros.recognizer import make_encoder
+from size_knob_study import sized_train_scans  # experiments/, beside this script
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'datasets'
 RADII = {'95 %': REGION_CHI2, '99 %': 16.81, '99.9 %': 22.46, '99.99 %': 27.86, '2 x 95 %': 25.18,
@@ -139,25 +137,13 @@ def tabletop(base: BankFile, enc, cache: Path, cells: list, folds: int) -> None:
 
 def mn40(base: BankFile, enc, cache: Path, cells: list, folds: int) -> None:
     """The ModelNet40 half of the module docstring."""
-    mn = open_dataset(SHARED / 'modelnet40_1024', split='train')
-    y_all = np.asarray(mn.labels)
-    rng = np.random.default_rng(0)
-    pick = np.concatenate([rng.permutation(np.flatnonzero(y_all == c))[:25] for c in range(40)])
-    views = ViewsDataset(mn, 1, 5, VIEW_PROTOCOLS['hpr'][0], include_full=False,
-                         random_yaw=True)
-    mfeats = torch.as_tensor(encode_dataset(views, enc, 64, progress=False,
-                                            cache_dir=cache))[pick]
-    my = y_all[pick]
-    clouds = [views[int(i)][0] * plausible_scale(mn[int(i)][0], mn.class_names[int(y_all[i])])
-              * rng.uniform(0.8, 1.25) for i in pick]
-    msizes = size_descriptors(clouds)
+    mfeats, my, msizes, mnames = sized_train_scans(cache, enc)
     shipped = Classifier(base.bank)
     mres = {cell: {'built rejected': [], 'taught rejected': [], 'of right answers': []}
             for cell in cells}
     for r, w in cells:
         mres[r, w]['built rejected'].append(outside(shipped, mfeats, msizes, RADII[r],
                                                     w)[0].mean())
-    mnames = list(mn.class_names)
     for fold in range(folds):
         r_ = np.random.default_rng(100 + fold)
         classes = [int(c) for c in r_.choice(40, 10, replace=False)]

@@ -42,7 +42,7 @@ from point_gn_ros.core.views import VIEW_PROTOCOLS
 from point_gn_ros.datasets import open_dataset
 from point_gn_ros.datasets.views import ViewsDataset
 from point_gn_ros.evaluation.teach import mean_class_accuracy
-from point_gn_ros.recognizer import make_encoder
+from point_gn_ros.recognizer import Encoder, make_encoder
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'datasets'
 KAPPAS = (5.0, 10.0, 20.0)
@@ -86,25 +86,35 @@ def tabletop(cache: Path, draws: int) -> tuple[dict, BankFile]:
     return scores, first
 
 
-def mn40(cache: Path, draws: int, taught: BankFile) -> tuple[dict, dict, float]:
-    """(a) few-shot accuracy per (w / kappa); (b) drop (points) per (kappa, gate); (c) fit < 0."""
+def sized_train_scans(cache: Path, enc: Encoder
+                      ) -> tuple[torch.Tensor, np.ndarray, np.ndarray, list[str]]:
+    """ModelNet40 train scans at plausible real sizes.
+
+    One single-view scan (hpr, seed 5) of 25 objects a class (seed 0), each scaled to its
+    class's size prior x 0.8-1.25 -> features (1000, D), labels (1000,), log sizes
+    (1000, SIZE_DIM), class names.
+    """
     ds = open_dataset(SHARED / 'modelnet40_1024', split='train')
     y_all = np.asarray(ds.labels)
     rng = np.random.default_rng(0)
     pick = np.concatenate([rng.permutation(np.flatnonzero(y_all == c))[:25] for c in range(40)])
     views = ViewsDataset(ds, 1, 5, VIEW_PROTOCOLS['hpr'][0], include_full=False,
                          random_yaw=True)
-    base = BankFile.load(None)
-    enc = make_encoder(base.bank.config, 'cpu')
     feats = torch.as_tensor(encode_dataset(views, enc, 64, progress=False,
                                            cache_dir=cache))[pick]
-    y = y_all[pick]
     clouds = []
     for i in pick:
         full = ds[int(i)][0]
         s = plausible_scale(full, ds.class_names[int(y_all[i])]) * rng.uniform(0.8, 1.25)
         clouds.append(views[int(i)][0] * s)
-    sizes = size_descriptors(clouds)
+    return feats, y_all[pick], size_descriptors(clouds), list(ds.class_names)
+
+
+def mn40(cache: Path, draws: int, taught: BankFile) -> tuple[dict, dict, float]:
+    """(a) few-shot accuracy per (w / kappa); (b) drop (points) per (kappa, gate); (c) fit < 0."""
+    base = BankFile.load(None)
+    enc = make_encoder(base.bank.config, 'cpu')
+    feats, y, sizes, _ = sized_train_scans(cache, enc)
     shipped = Classifier(base.bank, 'cpu', fit_threshold=0.0)
     z = shipped.transform(feats)
     # (c) the fit rule against the shipped bank, sized scans

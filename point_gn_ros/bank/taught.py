@@ -26,13 +26,13 @@ mean (built classes: the mean of their bank rows, size from the prior) -- how li
 nearest class the query is in shape and size. Knobs chosen by CV on the tabletop set
 (experiments/size_knob_study.py, docs/SIZE.md).
 
-Size region (for the same unknown rule): a query whose size lies outside the size region of
-the class it is answered is `outside`. The distance is -2 plaus_c (taught: the squared
-standardised log-size distance; built: the squared prior-range gap in RANGE_TAU units); the
-region is distance <= REGION_CHI2 (the 95 % quantile of chi-square with SIZE_DIM degrees of
-freedom), widened for the taught classes to the REGION_QUANTILE of their examples'
-leave-one-out distances, pooled over the taught classes, where those need more (scans that
-vary more in size than the prior says). Radius and pooling chosen by
+Size region (for the same unknown rule): misfit = the answer's size distance over its
+class's region; above 1 the query's size lies outside the region. The distance is -2 plaus_c
+(taught: the squared standardised log-size distance; built: the squared prior-range gap in
+RANGE_TAU units); the region is distance <= REGION_CHI2 (the 95 % quantile of chi-square
+with SIZE_DIM degrees of freedom), widened for the taught classes to the REGION_QUANTILE of
+their examples' leave-one-out distances, pooled over the taught classes, where those need
+more (scans that vary more in size than the prior says). Radius and pooling chosen by
 experiments/open_set_study.py (docs/SIZE.md).
 """
 
@@ -297,11 +297,10 @@ def loo_distances(sizes: np.ndarray) -> list[float]:
     n = len(sizes)
     if n < 2 or sizes.ndim != 2 or sizes.shape[1] != SIZE_DIM:
         return []
-    total = sizes.sum(0)
     out = []
     for i in range(n):
         rest = np.delete(sizes, i, axis=0)
-        mu = (total - sizes[i]) / (n - 1)
+        mu = rest.mean(0)
         var = (((rest - mu) ** 2).sum(0) + PRIOR_COUNT * PRIOR_VAR) / (n - 2 + PRIOR_COUNT)
         out.append(float(min(((sizes[i] - mu) ** 2 / var).sum(), 2 * MAX_PLAUS)))
     return out
