@@ -6,25 +6,40 @@ robot's clouds are in metres: a 15 cm carton is not a wardrobe. This layer moves
 probabilities (B, C) after the head, in two ways:
 
   taught block  classes with taught examples (meta 'taught', written by every enrollment)
-                share the head's total probability on them, p_T, re-divided among them by
+                take a share of the probability and divide it among themselves by
                 softmax(KAPPA cos(z, m_c) + W plaus_c): m_c the mean of the class's taught
-                rows z (the main section's transformed unit rows), cos the cosine to it;
-                mixed with the head's own division by a gate that opens as the query's best
-                cosine to a taught mean passes GATE_COS (built-class queries keep the head's);
+                rows z (the main section's transformed unit rows), cos the cosine to it.
+                A metric query (sizes given): the share is p_T + g (1 - p_T), p_T the head's
+                total on the block, g = logistic(LEAD_SLOPE (fit_T - fit_B + LEAD_MARGIN)),
+                fit_T and fit_B its fit (below) to its nearest taught and nearest built class;
+                the block is divided by g of the prototypes' division and 1 - g of the head's.
+                Sensor scans of a taught object resemble its taught scans more than a CAD
+                class's mean, and the head, fitted on CAD rows, would hand them to a built
+                class (62.4 % of the lidar-proxy answers before the lead; docs/SIZE.md).
+                A unit-sphere query (no sizes): the share stays p_T, and the prototypes'
+                division is mixed with the head's by g = logistic(GATE_SLOPE (best cosine to
+                a taught mean - GATE_COS)) (built-class queries keep the head's division;
+                the ModelNet40 figures after teaching stay as they were);
   size          every class whose size is known gets W plaus_c on its log-probability:
                 taught classes: -1/2 sum_d (s_d - mu_d)^2 / var_d over the measured log sizes
-                of its taught examples (var shrunk towards PRIOR_VAR with PRIOR_COUNT pseudo
-                examples); built classes: the real-world size prior (data/size_prior.json),
+                of its taught examples (var shrunk with PRIOR_COUNT pseudo examples towards
+                the taught classes' pooled variance, `pooled_variance`); built classes: the
+                real-world size prior (data/size_prior.json),
                 0 inside the relaxed range, -1/2 (distance / RANGE_TAU)^2 outside it.
 
 Queries without metric size (sizes None: unit-sphere data, the node's metric_size off) skip
 the size terms; a bank with no taught class and no size then leaves the head's output
 exactly as it is (ModelNet40 figures unchanged).
 
-Fit (for the unknown rule): max_c (cos(z, m_c) + W / KAPPA plaus_c) over every class with a
-mean (built classes: the mean of their bank rows, size from the prior) -- how like its
-nearest class the query is in shape and size. Knobs chosen by CV on the tabletop set
-(experiments/size_knob_study.py, docs/SIZE.md).
+Fit: max_c (cos(z, m_c) + W / KAPPA inside_c) over every class with a mean (built classes:
+the mean of their bank rows, size from the prior), inside_c = min(plaus_c + region_c / 2, 0):
+the size counts against a class only outside its size region (below), so a taught class's
+Gaussian and a built class's range weigh alike. For the unknown rule (fit below the
+threshold), a metric query in a bank whose taught classes have sizes is judged against the
+taught classes only: a built class's CAD mean fits sensor scans of anything about as well
+(AUROC 0.61 on the lidar proxy, against 0.92 for the taught fit). Knobs chosen by CV on the
+tabletop set and the ModelNet40 train split (experiments/size_knob_study.py,
+experiments/lead_study.py, docs/SIZE.md).
 
 Size region (for the same unknown rule): misfit = the answer's size distance over its
 class's region; above 1 the query's size lies outside the region. The distance is -2 plaus_c
@@ -51,8 +66,10 @@ from point_gn_ros.core.size import SIZE_DIM
 
 KAPPA = 10.0           # shape: logit per unit cosine to a taught class mean
 W_SIZE = 0.5           # size: weight of the plausibility on the log-probability
-GATE_COS = 0.75        # the prototypes re-divide p_T for queries whose best cosine to a
-GATE_SLOPE = 10.0      # taught mean passes GATE_COS (logistic gate of this slope)
+GATE_COS = 0.75        # the prototypes re-divide the taught block for queries whose best
+GATE_SLOPE = 10.0      # cosine to a taught mean passes GATE_COS (logistic gate of this slope)
+LEAD_SLOPE = 10.0      # a metric query's taught-block share: logistic of this slope in the
+LEAD_MARGIN = 0.2      # fit lead of its nearest taught class over its nearest built one, plus this
 PRIOR_VAR = 0.02       # taught classes' log-size variance prior (sd ~14 %) ...
 PRIOR_COUNT = 3.0      # ... worth this many examples
 RANGE_LOW, RANGE_HIGH = 0.5, 1.25   # prior ranges relaxed: a partial view shows less
@@ -177,6 +194,8 @@ class TaughtLayer:
     kappa: float = KAPPA
     w_size: float = W_SIZE
     gate_cos: float = GATE_COS
+    lead_slope: float = LEAD_SLOPE
+    lead_margin: float = LEAD_MARGIN
 
     @classmethod
     def build(cls, meta: dict[str, Any], class_names: list[str], z_rows: torch.Tensor,
@@ -194,12 +213,14 @@ class TaughtLayer:
             if m.shape == (d,) and np.isfinite(m).all() and np.linalg.norm(m) > 0:
                 taught.append(i)
                 means.append(m / np.linalg.norm(m))
-            sn = int(r.get('sn', 0))
-            if sn > 0:
-                mu[i] = np.asarray(r['smean'], dtype=np.float64)
-                var[i] = (np.asarray(r['sm2'], dtype=np.float64) + PRIOR_COUNT * PRIOR_VAR) \
-                    / (sn - 1 + PRIOR_COUNT)
-                loo.extend(loo_distances(np.asarray(r.get('sizes', []), dtype=np.float64)))
+        sized = {class_names.index(k): r for k, r in rec.items() if int(r.get('sn', 0)) > 0}
+        target = pooled_variance([(int(r['sn']), np.asarray(r['sm2'], dtype=np.float64))
+                                  for r in sized.values()])
+        for i, r in sized.items():
+            mu[i] = np.asarray(r['smean'], dtype=np.float64)
+            var[i] = (np.asarray(r['sm2'], dtype=np.float64) + PRIOR_COUNT * target) \
+                / (int(r['sn']) - 1 + PRIOR_COUNT)
+            loo.extend(loo_distances(np.asarray(r.get('sizes', []), dtype=np.float64), target))
         taught_ids = np.asarray(taught, dtype=np.int64)
         built = np.setdiff1d(np.arange(c), taught_ids)
         lab = labels.numpy()
@@ -226,6 +247,11 @@ class TaughtLayer:
     def active(self) -> bool:
         """Whether the layer can move anything without sizes (taught classes exist)."""
         return len(self.taught) > 0
+
+    @property
+    def sized_taught(self) -> bool:
+        """Whether a taught class has measured sizes."""
+        return bool(len(self.taught)) and bool(np.isfinite(self.size_mu[self.taught, 0]).any())
 
     def plausibility(self, sizes: np.ndarray) -> np.ndarray:
         """sizes: (B, SIZE_DIM) log sizes -> (B, C) plausibility <= 0 (0: no size known)."""
@@ -254,45 +280,88 @@ class TaughtLayer:
         logp = prob.double().clamp_min(1e-300).log().numpy()
         zq = z.double().numpy()
         plaus = None if sizes is None else self.plausibility(sizes)
+        fits = self.fits(zq, plaus)
+        built = self.built_ids
+        if plaus is not None:
+            logp[:, built] += self.w_size * plaus[:, built]
         if len(self.taught):
             cos_t = zq @ self.means.T                                   # (B, T)
             s = self.kappa * cos_t
             if plaus is not None:
                 s = s + self.w_size * plaus[:, self.taught]
-            p_t = _logsumexp(logp[:, self.taught])
-            # a query unlike every taught mean keeps the head's division (gate -> 0): the
-            # prototypes must not concentrate p_t on one taught class for a built-class query
-            gate = 1.0 / (1.0 + np.exp(-GATE_SLOPE * (cos_t.max(1) - self.gate_cos)))[:, None]
-            share = gate * np.exp(s - _logsumexp(s)[:, None]) \
-                + (1.0 - gate) * np.exp(logp[:, self.taught] - p_t[:, None])
-            logp[:, self.taught] = p_t[:, None] + np.log(np.maximum(share, 1e-300))
-        if plaus is not None:
-            built = np.setdiff1d(np.arange(logp.shape[1]), self.taught)
-            logp[:, built] += self.w_size * plaus[:, built]
+            log_t = _logsumexp(logp[:, self.taught])
+            log_b = _logsumexp(logp[:, built]) if len(built) else np.full(len(zq), -np.inf)
+            p_t = np.exp(log_t - np.logaddexp(log_t, log_b))
+            if plaus is None:
+                # a unit-sphere query: the head's share of the taught block, re-divided by the
+                # prototypes as its best cosine to a taught mean passes gate_cos (a built-class
+                # query keeps the head's division)
+                gate = 1.0 / (1.0 + np.exp(-GATE_SLOPE * (cos_t.max(1) - self.gate_cos)))
+                mass = p_t
+            else:
+                # a metric query: the block's share raised towards 1, and re-divided by the
+                # prototypes, as the query is more like its nearest taught class than its
+                # nearest built one (shape and size, `fit`)
+                lead = fits[:, self.taught].max(1) - _best(fits[:, built])
+                gate = 1.0 / (1.0 + np.exp(-np.clip(self.lead_slope * (lead + self.lead_margin),
+                                                     -50.0, 50.0)))
+                mass = gate + (1.0 - gate) * p_t
+            share = gate[:, None] * np.exp(s - _logsumexp(s)[:, None]) \
+                + (1.0 - gate[:, None]) * np.exp(logp[:, self.taught] - log_t[:, None])
+            logp[:, self.taught] = np.log(np.maximum(mass, 1e-300))[:, None] \
+                + np.log(np.maximum(share, 1e-300))
+            if len(built):
+                logp[:, built] += (np.log(np.maximum(1.0 - mass, 1e-300)) - log_b)[:, None]
         out = torch.softmax(torch.from_numpy(logp), dim=1).float()
         misfit = None
         if plaus is not None:
             top = out.argmax(1).numpy()
             misfit = -2.0 * plaus[np.arange(len(top)), top] / self.region[top]
-        return out, self.fit(zq, plaus), misfit
+        # a metric query in a bank with sized taught classes is judged against those: the
+        # built classes' CAD means fit sensor scans of anything about as well
+        judged = fits[:, self.taught] if plaus is not None and self.sized_taught else fits
+        return out, _best(judged, empty=0.0), misfit
 
     def fit(self, zq: np.ndarray, plaus: np.ndarray | None) -> np.ndarray:
-        """(B, d) unit rows, plausibility (B, C) or None -> (B,) best shape-and-size fit."""
+        """(B, d) unit rows, plausibility (B, C) or None -> (B,) best fit over every class."""
+        return _best(self.fits(zq, plaus), empty=0.0)
+
+    def fits(self, zq: np.ndarray, plaus: np.ndarray | None) -> np.ndarray:
+        """(B, d) unit rows, plausibility (B, C) or None -> (B, C) fit per class.
+
+        Shape and size (module docstring); -inf for a class without a mean.
+        """
         cos = np.full((len(zq), len(self.size_mu)), -np.inf)
         if len(self.taught):
             cos[:, self.taught] = zq @ self.means.T
         if len(self.built_ids):
             cos[:, self.built_ids] = zq @ self.built_means.T
         if plaus is not None:
-            cos = cos + self.w_size / self.kappa * plaus
-        return cos.max(1) if cos.shape[1] else np.zeros(len(zq))
+            # inside a class's size region the size says nothing against it
+            inside = np.minimum(plaus + 0.5 * self.region[None, :], 0.0)
+            cos = cos + self.w_size / self.kappa * inside
+        return cos
 
 
-def loo_distances(sizes: np.ndarray) -> list[float]:
+def pooled_variance(classes: list[tuple[int, np.ndarray]]) -> np.ndarray:
+    """The taught classes' pooled within-class log-size variance, (SIZE_DIM,).
+
+    classes: (examples, sum of squared deviations (SIZE_DIM,)) per class with sizes. Shrunk
+    towards PRIOR_VAR with PRIOR_COUNT pseudo examples; PRIOR_VAR for none. Each class's
+    variance is shrunk towards it: 5 examples say little about their own spread, the other
+    taught classes, seen by the same sensor, say more than a fixed prior.
+    """
+    m2 = sum((s for _, s in classes), np.zeros(SIZE_DIM))
+    dof = sum(n - 1 for n, _ in classes)
+    return (m2 + PRIOR_COUNT * PRIOR_VAR) / (dof + PRIOR_COUNT)
+
+
+def loo_distances(sizes: np.ndarray, target: np.ndarray | float = PRIOR_VAR) -> list[float]:
     """Leave-one-out distances of one class's taught examples.
 
-    sizes: (n, SIZE_DIM) log sizes -> each one's distance (-2 plausibility) to the class's
-    size model fitted without it (none for fewer than 2 examples).
+    sizes: (n, SIZE_DIM) log sizes; target: the variance the class's is shrunk towards
+    (`pooled_variance`) -> each one's distance (-2 plausibility) to the class's size model
+    fitted without it (none for fewer than 2 examples).
     """
     n = len(sizes)
     if n < 2 or sizes.ndim != 2 or sizes.shape[1] != SIZE_DIM:
@@ -301,9 +370,14 @@ def loo_distances(sizes: np.ndarray) -> list[float]:
     for i in range(n):
         rest = np.delete(sizes, i, axis=0)
         mu = rest.mean(0)
-        var = (((rest - mu) ** 2).sum(0) + PRIOR_COUNT * PRIOR_VAR) / (n - 2 + PRIOR_COUNT)
+        var = (((rest - mu) ** 2).sum(0) + PRIOR_COUNT * target) / (n - 2 + PRIOR_COUNT)
         out.append(float(min(((sizes[i] - mu) ** 2 / var).sum(), 2 * MAX_PLAUS)))
     return out
+
+
+def _best(fits: np.ndarray, empty: float = -np.inf) -> np.ndarray:
+    """(B, K) -> (B,) row maxima; `empty` for K = 0."""
+    return fits.max(1) if fits.shape[1] else np.full(len(fits), empty)
 
 
 def _logsumexp(a: np.ndarray) -> np.ndarray:

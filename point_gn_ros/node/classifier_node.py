@@ -487,7 +487,16 @@ def autostart(node: ClassifierNode) -> None:
 
 def main(args: list[str] | None = None) -> int:
     """Entry point (console script ``classifier_node``); returns the exit code."""
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    interrupted = threading.Event()
+
+    def on_sigint(signum: int, frame: object) -> None:
+        interrupted.set()
+        raise KeyboardInterrupt
+
+    # A KeyboardInterrupt raised inside a pybind11 call of rclpy's can come out of spin() as
+    # another exception ("Unable to convert call argument ..."): after Ctrl-C it is still a
+    # clean exit, so the handler records that Ctrl-C came.
+    signal.signal(signal.SIGINT, on_sigint)
     rclpy.init(args=args)               # its signal handlers: SIGINT and SIGTERM shut down
     exit_with_parent()                  # under ros2 launch: stop when launch is killed
     node: ClassifierNode | None = None
@@ -511,9 +520,10 @@ def main(args: list[str] | None = None) -> int:
         rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {exc}')
         code = 1
     except Exception:
-        if rclpy.ok():
+        if rclpy.ok() and not interrupted.is_set():
             raise          # a bug: keep the traceback
-        # Ctrl-C during start-up shut the context down under the constructor: a clean exit.
+        # Ctrl-C shut the context down under the constructor, or interrupted a call into
+        # rclpy's C++ layer: a clean exit.
     finally:
         if node is not None:
             node.destroy_node()

@@ -203,9 +203,10 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                           'keep the sizes of their examples (bank/taught.py, docs/SIZE.md); '
                           'false for inputs without metric meaning (unit-sphere data).', {}),
     'fit_threshold': (0.0, 'Unknown (class_id -1) when the shape-and-size fit to the nearest '
-                           'class is below it, or (with metric_size) the size lies outside the '
-                           "answer's size region (bank/taught.py): garbage decodes, clouds of a "
-                           'size no class has, unseen objects sized unlike their answer; '
+                           'class (with metric_size and taught classes with sizes: the nearest '
+                           'taught class) is below it, or (with metric_size) the size lies '
+                           "outside the answer's size region (bank/taught.py): garbage decodes, "
+                           'clouds of a size no class has, objects unlike every taught one; '
                            '-10 = off (docs/SIZE.md for the trade-off).',
                       {'floating_point_range': _float_range(-10.0, 1.0)}),
     'volume_threshold': (0.8, "Unknown (class_id -1) when more than this share of the cloud's "

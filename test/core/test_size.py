@@ -99,11 +99,14 @@ def test_an_answer_outside_its_classs_size_region_is_flagged_and_the_region_wide
     layer = _layer(json.loads(json.dumps(meta)), names)
     carton_id, bin_id = 2, 3
     assert layer.region[0] == REGION_CHI2                 # built: the chi-square radius
-    assert layer.region[bin_id] > 1.5 * REGION_CHI2       # widened by the bin's examples,
+    assert layer.region[bin_id] > 1.1 * REGION_CHI2       # widened by the bin's examples,
     assert layer.region[carton_id] == layer.region[bin_id]   # pooled over taught classes
     alone = _layer(json.loads(json.dumps(add_taught({}, 'carton', torch.nn.functional.normalize(
         torch.eye(4)[[2] * 5], dim=1), carton))), names)
     assert alone.region[carton_id] == REGION_CHI2         # its examples agree with the prior
+    # 5 examples say little about their own spread: the carton's variance is shrunk towards
+    # the taught classes' pooled one (the same sensor), widened here by the bin's
+    assert (layer.size_var[carton_id] > alone.size_var[carton_id]).all()
     prob = torch.tensor([[0.05, 0.05, 0.85, 0.05]])
     z = torch.nn.functional.normalize(torch.eye(4)[[2]], dim=1)
     _, _, inside = layer.apply(prob, z, carton.mean(0)[None])
@@ -116,6 +119,36 @@ def test_an_answer_outside_its_classs_size_region_is_flagged_and_the_region_wide
     many = add_taught(meta, 'carton', torch.nn.functional.normalize(
         torch.eye(4)[[2] * 30], dim=1), np.repeat(carton, 6, axis=0))
     assert len(many[KEY]['carton']['sizes']) == KEPT_SIZES
+
+
+def test_a_metric_query_like_a_taught_class_takes_it_from_the_built_one_the_head_prefers() -> None:
+    from point_gn_ros.bank.taught import add_taught
+    names = ['person', 'lamp', 'pedestrian', 'pole']
+    rng = np.random.default_rng(3)
+    walker = np.log([1.7, 0.6, 0.4, 0.45, 0.15, 0.1]) + rng.normal(0, 0.05, (5, SIZE_DIM))
+    mast = np.log([4.0, 0.3, 0.25, 1.1, 0.08, 0.06]) + rng.normal(0, 0.05, (5, SIZE_DIM))
+    scans = torch.nn.functional.normalize(torch.tensor([[0.3, 0.0, 1.0, 0.0]] * 5), dim=1)
+    meta = add_taught({}, 'pedestrian', scans, walker)
+    meta = add_taught(meta, 'pole', torch.nn.functional.normalize(
+        torch.tensor([[0.0, 0.3, 0.0, 1.0]] * 5), dim=1), mast)
+    layer = _layer(json.loads(json.dumps(meta)), names)
+    # the head, fitted on CAD rows, gives a pedestrian's scan to the built 'person'
+    head = torch.tensor([[0.9, 0.04, 0.03, 0.03]])
+    z = torch.nn.functional.normalize(torch.tensor([[0.35, 0.0, 1.0, 0.05]]), dim=1)
+    p, fit, _ = layer.apply(head, z, walker.mean(0)[None])
+    assert p.argmax().item() == 2 and p[0, 2] > 0.6
+    # without sizes (unit-sphere data) the head's share of the taught block stays
+    p_none, _, _ = layer.apply(head, z, None)
+    assert p_none.argmax().item() == 0
+    assert abs(float(p_none[0, 2:].sum()) - 0.06) < 1e-4
+    # a metric query unlike both taught classes (a lamp-shaped 80 cm thing) is judged
+    # against the taught classes only: its fit to every class would pass the default threshold
+    odd = torch.nn.functional.normalize(torch.tensor([[0.2, 1.0, 0.0, 0.0]]), dim=1)
+    lamp = np.log([0.8, 0.4, 0.3, 0.2, 0.1, 0.08])[None]
+    _, fit_odd, _ = layer.apply(head, odd, lamp)
+    every = layer.fit(odd.double().numpy(), layer.plausibility(lamp))
+    assert fit_odd[0] < DEFAULT_FIT_THRESHOLD < every[0]
+    assert fit[0] > DEFAULT_FIT_THRESHOLD
 
 
 @pytest.fixture(scope='module')
