@@ -280,12 +280,13 @@ class TaughtLayer:
         logp = prob.double().clamp_min(1e-300).log().numpy()
         zq = z.double().numpy()
         plaus = None if sizes is None else self.plausibility(sizes)
-        fits = self.fits(zq, plaus)
+        cos = self._cosines(zq)
+        fits = self._fits(cos, plaus)
         built = self.built_ids
         if plaus is not None:
             logp[:, built] += self.w_size * plaus[:, built]
         if len(self.taught):
-            cos_t = zq @ self.means.T                                   # (B, T)
+            cos_t = cos[:, self.taught]                                 # (B, T)
             s = self.kappa * cos_t
             if plaus is not None:
                 s = s + self.w_size * plaus[:, self.taught]
@@ -331,16 +332,23 @@ class TaughtLayer:
 
         Shape and size (module docstring); -inf for a class without a mean.
         """
+        return self._fits(self._cosines(zq), plaus)
+
+    def _cosines(self, zq: np.ndarray) -> np.ndarray:
+        """(B, d) unit rows -> (B, C) cosine to each class's mean (-inf: no mean)."""
         cos = np.full((len(zq), len(self.size_mu)), -np.inf)
         if len(self.taught):
             cos[:, self.taught] = zq @ self.means.T
         if len(self.built_ids):
             cos[:, self.built_ids] = zq @ self.built_means.T
-        if plaus is not None:
-            # inside a class's size region the size says nothing against it
-            inside = np.minimum(plaus + 0.5 * self.region[None, :], 0.0)
-            cos = cos + self.w_size / self.kappa * inside
         return cos
+
+    def _fits(self, cos: np.ndarray, plaus: np.ndarray | None) -> np.ndarray:
+        if plaus is None:
+            return cos
+        # inside a class's size region the size says nothing against it
+        inside = np.minimum(plaus + 0.5 * self.region[None, :], 0.0)
+        return cos + self.w_size / self.kappa * inside
 
 
 def pooled_variance(classes: list[tuple[int, np.ndarray]]) -> np.ndarray:
