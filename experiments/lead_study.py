@@ -91,11 +91,15 @@ def taught(base: BankFile, feats: torch.Tensor, sizes: np.ndarray, y: np.ndarray
     return Classifier(bf.bank, fit_threshold=0.0), sup
 
 
-def layer_outputs(clf: Classifier, feats: torch.Tensor, sizes: np.ndarray | None,
-                  slope: float, margin: float):
-    prob, _ = clf.evaluate(feats)
+def head_outputs(clf: Classifier, feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The head's probabilities and the transformed rows: the same for every grid point."""
+    return clf.evaluate(feats)[0], clf.transform(feats)
+
+
+def layer_outputs(clf: Classifier, head: tuple[torch.Tensor, torch.Tensor],
+                  sizes: np.ndarray | None, slope: float, margin: float):
     layer = replace(clf.taught, lead_slope=slope, lead_margin=margin)
-    out, fit, misfit = layer.apply(prob, clf.transform(feats), sizes)
+    out, fit, misfit = layer.apply(*head, sizes)
     return out.argmax(1).numpy(), fit, misfit, layer
 
 
@@ -112,13 +116,14 @@ def study(base: BankFile, feats: torch.Tensor, sizes: np.ndarray, y: np.ndarray,
         known = q[y[q] != held]
         both = np.r_[known, unseen]
         is_unseen = np.r_[np.zeros(len(known), bool), np.ones(len(unseen), bool)]
+        head_q, head_open = head_outputs(clf, feats[q]), head_outputs(clf_open, feats[both])
+        z_open = head_open[1].double().numpy()
         for slope, margin in GRID:
-            top, *_ = layer_outputs(clf, feats[q], sizes[q], slope, margin)
+            top, *_ = layer_outputs(clf, head_q, sizes[q], slope, margin)
             top = np.array([to_ds.get(int(p), -1) for p in top])
-            _, fit, misfit, layer = layer_outputs(clf_open, feats[both], sizes[both], slope,
+            _, fit, misfit, layer = layer_outputs(clf_open, head_open, sizes[both], slope,
                                                   margin)
-            z = clf_open.transform(feats[both]).double().numpy()
-            fit_all = layer.fit(z, layer.plausibility(sizes[both]))
+            fit_all = layer.fit(z_open, layer.plausibility(sizes[both]))
             out = [mean_class_accuracy(top, y[q]), (top < 0).mean()]
             for score in (fit_all, fit):
                 rejected = (score < 0) | (misfit > 1)
@@ -162,14 +167,16 @@ def main() -> None:
     clf, _ = taught(base, encode_clouds(tt_clouds, enc), size_descriptors(tt_clouds),
                     np.asarray(tt.labels), list(tt.class_names), 0)
     shipped = Classifier(base.bank)
+    before = {s is None: (shipped.classify(feats, 1, sizes=s).topk_ids[:, 0] == my).mean()
+              for s in (None, msizes)}
+    head = head_outputs(clf, feats)
     print('\n| slope, margin | ModelNet40 train scans, drop without sizes | with sizes |\n'
           '|---|---|---|')
     for slope, margin in GRID:
         cells = []
         for s in (None, msizes):
-            before = (shipped.classify(feats, 1, sizes=s).topk_ids[:, 0] == my).mean()
-            after = (layer_outputs(clf, feats, s, slope, margin)[0] == my).mean()
-            cells.append(f'{100 * (before - after):.1f}')
+            after = (layer_outputs(clf, head, s, slope, margin)[0] == my).mean()
+            cells.append(f'{100 * (before[s is None] - after):.1f}')
         print(f'| {slope:g}, {margin:g} | ' + ' | '.join(cells) + ' |', flush=True)
 
 
