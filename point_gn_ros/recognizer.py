@@ -19,7 +19,7 @@ from point_gn_ros.core.augment import Augment, yaw_variants
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.sampling import ResampleMethod, prepare
 from point_gn_ros.core.size import size_descriptors
-from point_gn_ros.core.surface import volumetric_shares
+from point_gn_ros.core.surface import separated_shares, volumetric_shares
 
 
 class Encoder(Protocol):
@@ -107,7 +107,8 @@ class Recognizer:
                  search: str = 'auto', previous: 'Recognizer | None' = None,
                  object_test: bool = True, metric_size: bool = True,
                  fit_threshold: float | None = None,
-                 volume_threshold: float | None = None) -> None:
+                 volume_threshold: float | None = None,
+                 scene_threshold: float | None = None) -> None:
         """Encoder + classifier for one bank.
 
         search: the classifier's bank search, 'auto', 'exact' or 'indexed'
@@ -118,7 +119,10 @@ class Recognizer:
         (bank/taught.py); False for inputs without metric meaning (unit-sphere data);
         fit_threshold: shape-and-size fit below which a cloud is unknown (None: no such rule);
         volume_threshold: share of volumetric neighbourhoods (core/surface.py) above which a
-        cloud is unknown, a volume of points rather than a view of surfaces (None: no such rule).
+        cloud is unknown, a volume of points rather than a view of surfaces (None: no such rule);
+        scene_threshold: share of the area seen from above apart from the cloud's largest part
+        (core/surface.py) above which a cloud is unknown, several objects rather than one
+        (None: no such rule).
         """
         self.bank = bank
         self.encoder = encoder or make_encoder(bank.config, device, threads=threads)
@@ -126,7 +130,8 @@ class Recognizer:
         self.classifier = Classifier(bank, device, unknown_threshold, search=search,
                                      previous=None if previous is None else previous.classifier,
                                      object_test=object_test, fit_threshold=fit_threshold,
-                                     volume_threshold=volume_threshold)
+                                     volume_threshold=volume_threshold,
+                                     scene_threshold=scene_threshold)
         self.metric_size = metric_size
         self.resample = resample
         self.top_k = top_k
@@ -145,11 +150,13 @@ class Recognizer:
                   threads: int | None = None, search: str = 'auto',
                   fit_threshold: float | None = None,
                   volume_threshold: float | None = None,
+                  scene_threshold: float | None = None,
                   metric_size: bool = True) -> 'Recognizer':
         """Load a bank (None: the shipped default) and build the matching encoder."""
         return cls(FeatureBank.load(path), device, resample, top_k, unknown_threshold,
                    threads=threads, search=search, fit_threshold=fit_threshold,
-                   volume_threshold=volume_threshold, metric_size=metric_size)
+                   volume_threshold=volume_threshold, scene_threshold=scene_threshold,
+                   metric_size=metric_size)
 
     @classmethod
     def as_node(cls, path: str | os.PathLike[str] | None = None, *, metric_size: bool = True,
@@ -160,9 +167,12 @@ class Recognizer:
         metric_size: False for clouds without metric meaning (unit-sphere data).
         """
         from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD, fit_rule
-        from point_gn_ros.core.surface import DEFAULT_VOLUME_THRESHOLD, volume_rule
+        from point_gn_ros.core.surface import (DEFAULT_SCENE_THRESHOLD,
+                                               DEFAULT_VOLUME_THRESHOLD, scene_rule,
+                                               volume_rule)
         return cls.from_bank(path, fit_threshold=fit_rule(DEFAULT_FIT_THRESHOLD),
                              volume_threshold=volume_rule(DEFAULT_VOLUME_THRESHOLD),
+                             scene_threshold=scene_rule(DEFAULT_SCENE_THRESHOLD),
                              metric_size=metric_size, **kwargs)
 
     @property
@@ -195,11 +205,18 @@ class Recognizer:
             return self.classifier.classify(torch.zeros(0, self.encoder.cfg.feature_dim),
                                             self.top_k)
         return self.classifier.classify(self.encode(clouds), self.top_k, self.sizes(clouds),
-                                        self.volumes(clouds))
+                                        self.volumes(clouds), self.separations(clouds))
 
     def volumes(self, clouds: Sequence[np.ndarray]) -> np.ndarray | None:
         """(B,) share of volumetric neighbourhoods (core/surface.py); None without the rule."""
         return None if self.classifier.volume_threshold is None else volumetric_shares(clouds)
+
+    def separations(self, clouds: Sequence[np.ndarray]) -> np.ndarray | None:
+        """(B,) share of area apart from each cloud's largest part (core/surface.py).
+
+        None without the scene rule.
+        """
+        return None if self.classifier.scene_threshold is None else separated_shares(clouds)
 
     def sizes(self, clouds: Sequence[np.ndarray]) -> np.ndarray | None:
         """(B, SIZE_DIM) metric log sizes (core/size.py); None without metric_size."""
@@ -220,5 +237,5 @@ class Recognizer:
         cfg = self.encoder.cfg
         batch = np.stack([_prepared(c, cfg, self.resample, 0) for c in clouds])
         features = start(torch.from_numpy(batch))
-        sizes, volumes = self.sizes(clouds), self.volumes(clouds)
-        return lambda: self.classifier.classify(features(), self.top_k, sizes, volumes)
+        sizes, volumes, apart = self.sizes(clouds), self.volumes(clouds), self.separations(clouds)
+        return lambda: self.classifier.classify(features(), self.top_k, sizes, volumes, apart)

@@ -85,6 +85,9 @@ class Classification:
                                            # size region (> 1: outside); None without sizes
     volumetric: np.ndarray | None = None  # (B,) share of volumetric neighbourhoods
                                           # (core/surface.py); None without the volume rule
+    separated: np.ndarray | None = None   # (B,) share of area apart from the cloud's
+                                          # largest part (core/surface.py); None without the
+                                          # scene rule
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -124,6 +127,7 @@ class UnknownRules:
     probability: top-1 calibrated probability below it; novelty: novelty above it;
     fit: shape-and-size fit (bank/taught.py) below it, or the size outside the answer's size
     region (size misfit > 1); volume: share of volumetric neighbourhoods (core/surface.py)
+    above it; scene: share of area apart from the cloud's largest part (core/surface.py)
     above it.
     """
 
@@ -131,11 +135,13 @@ class UnknownRules:
     novelty: float | None = None
     fit: float | None = None
     volume: float | None = None
+    scene: float | None = None
 
 
 def unknown_rules(bank: FeatureBank, unknown_threshold: float | None = None,
                   novelty_threshold: float | None = None, fit_threshold: float | None = None,
-                  volume_threshold: float | None = None) -> UnknownRules:
+                  volume_threshold: float | None = None,
+                  scene_threshold: float | None = None) -> UnknownRules:
     """The unknown rules of a bank under the given thresholds.
 
     unknown_threshold None or 0: off; > 0: top-1 calibrated probability below it; < 0: the
@@ -157,7 +163,7 @@ def unknown_rules(bank: FeatureBank, unknown_threshold: float | None = None,
                 else min(novelty, float(calib['threshold']))
         else:
             probability = float(calib['threshold'])
-    return UnknownRules(probability, novelty, fit_threshold, volume_threshold)
+    return UnknownRules(probability, novelty, fit_threshold, volume_threshold, scene_threshold)
 
 
 class Classifier:
@@ -172,7 +178,8 @@ class Classifier:
                  index_min_entries: int = INDEX_MIN_ENTRIES,
                  previous: 'Classifier | None' = None, object_test: bool = True,
                  fit_threshold: float | None = None,
-                 volume_threshold: float | None = None, compiled: bool = True) -> None:
+                 volume_threshold: float | None = None, scene_threshold: float | None = None,
+                 compiled: bool = True) -> None:
         """Classifier of one bank version (its path and search are chosen here, once).
 
         gamma: override the bank's (comparisons only); search: 'auto', 'exact' or
@@ -200,7 +207,7 @@ class Classifier:
             previous=None if previous is None else previous.views, compiled=compiled)
         self.gate = None if bank.gate is None else bank.gate.to(self.device)
         self.rules = unknown_rules(bank, unknown_threshold, novelty_threshold, fit_threshold,
-                                   volume_threshold)
+                                   volume_threshold, scene_threshold)
         self._taught: TaughtLayer | None = None
         # The object test's shift of taught classes; None: nothing moves.
         self.object_shift = None if bank.objects is None or not object_test \
@@ -261,13 +268,18 @@ class Classifier:
     def volume_threshold(self) -> float | None:
         return self.rules.volume
 
+    @property
+    def scene_threshold(self) -> float | None:
+        return self.rules.scene
+
     def set_unknown_threshold(self, unknown_threshold: float | None) -> None:
         """Re-resolve the probability / calibrated rule (`unknown_rules`), others kept.
 
         Raises ValueError as `unknown_rules` does; the rules are unchanged then.
         """
         self.rules = replace(unknown_rules(self.bank, unknown_threshold),
-                             fit=self.rules.fit, volume=self.rules.volume)
+                             fit=self.rules.fit, volume=self.rules.volume,
+                             scene=self.rules.scene)
 
     @torch.no_grad()
     def evaluate(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -367,7 +379,8 @@ class Classifier:
     @torch.no_grad()
     def classify(self, features: torch.Tensor, top_k: int = 5,
                  sizes: np.ndarray | None = None,
-                 volumes: np.ndarray | None = None) -> Classification:
+                 volumes: np.ndarray | None = None,
+                 separated: np.ndarray | None = None) -> Classification:
         """features: (B, D) float32 raw encoder output -> Classification.
 
         sizes: (B, SIZE_DIM) metric log sizes of the queries (core/size.py), or None for
@@ -375,7 +388,8 @@ class Classifier:
         (bank/taught.py) run when the bank has taught classes, sizes are given, or the
         fit threshold is set; otherwise the head's probabilities are the answer.
         volumes: (B,) shares of volumetric neighbourhoods (core/surface.py) for the volume
-        rule, or None.
+        rule, or None; separated: (B,) shares of area apart from each cloud's largest part
+        (core/surface.py) for the scene rule, or None.
         """
         prob, novelty, partial = self._evaluate(features)
         prob, novelty = prob.cpu(), novelty.cpu()
@@ -398,6 +412,8 @@ class Classifier:
                 labels[torch.from_numpy(misfit > 1.0)] = UNKNOWN
         if rules.volume is not None and volumes is not None:
             labels[torch.from_numpy(np.asarray(volumes) > rules.volume)] = UNKNOWN
+        if rules.scene is not None and separated is not None:
+            labels[torch.from_numpy(np.asarray(separated) > rules.scene)] = UNKNOWN
         return Classification(labels=labels.numpy().astype(np.int64),
                               scores=top_s[:, 0].numpy().astype(np.float32),
                               topk_ids=top_i.numpy().astype(np.int64),
@@ -410,7 +426,9 @@ class Classifier:
                               size_misfit=None if misfit is None
                               else misfit.astype(np.float32),
                               volumetric=None if volumes is None
-                              else np.asarray(volumes, dtype=np.float32))
+                              else np.asarray(volumes, dtype=np.float32),
+                              separated=None if separated is None
+                              else np.asarray(separated, dtype=np.float32))
 
 
 def _object_shift(bank: FeatureBank) -> ObjectShift | None:

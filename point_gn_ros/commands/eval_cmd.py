@@ -77,6 +77,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument('--volume-threshold', type=float, default=None, metavar='V',
                    help='--bank: the volume rule counted in the reject rates (default: the '
                         "node's, core/surface.py DEFAULT_VOLUME_THRESHOLD; 1 = off)")
+    f.add_argument('--scene-threshold', type=float, default=None, metavar='S',
+                   help='--bank: the scene rule counted in the reject rates (default: the '
+                        "node's, core/surface.py DEFAULT_SCENE_THRESHOLD; 1 = off)")
     f.set_defaults(func=_fewshot)
 
 
@@ -243,8 +246,8 @@ def _teach(args: argparse.Namespace) -> int:
     from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD
     from point_gn_ros.commands.common import open_dataset_from_args
     from point_gn_ros.core.size import size_descriptors
-    from point_gn_ros.core.surface import (DEFAULT_VOLUME_THRESHOLD, volume_rule,
-                                           volumetric_shares)
+    from point_gn_ros.core.surface import (DEFAULT_SCENE_THRESHOLD, DEFAULT_VOLUME_THRESHOLD,
+                                           scene_rule, structure_unknown, volume_rule)
     from point_gn_ros.evaluation.teach import run_teach_protocol
     from point_gn_ros.recognizer import encode_clouds, make_encoder
 
@@ -261,12 +264,13 @@ def _teach(args: argparse.Namespace) -> int:
     fit = DEFAULT_FIT_THRESHOLD if args.fit_threshold is None else args.fit_threshold
     vol = volume_rule(DEFAULT_VOLUME_THRESHOLD if args.volume_threshold is None
                       else args.volume_threshold)
+    scene = scene_rule(DEFAULT_SCENE_THRESHOLD if args.scene_threshold is None
+                       else args.scene_threshold)
     rep = run_teach_protocol(bf, list(ds.class_names), np.asarray(ds.labels), feats, sizes,
                              args.shots or 5, args.draws, args.seed, policy, fit,
                              progress=None if args.json else
                              lambda m: print(m, file=sys.stderr, flush=True),
-                             volumes=None if vol is None else volumetric_shares(clouds),
-                             volume_threshold=vol)
+                             structural=structure_unknown(clouds, vol, scene))
     rep.update(bank=str(bf.bank.path), dataset=str(ds.path), split=ds.split)
     if args.json:
         print(json.dumps(rep, indent=2))
@@ -275,7 +279,8 @@ def _teach(args: argparse.Namespace) -> int:
           f'{rep["shots"]} scans a class taught into {Path(rep["bank"]).name}, '
           f'{rep["draws"]} draws (seed {rep["seed"]}), metric size '
           f'{"on" if rep["metric_size"] else "off"}, fit threshold {fit:g}, volume '
-          f'threshold {"off" if vol is None else f"{vol:g}"}')
+          f'threshold {"off" if vol is None else f"{vol:g}"}, scene threshold '
+          f'{"off" if scene is None else f"{scene:g}"}')
     print('| figure | mean ± std over draws |\n|---|---|')
     for key, v in rep['summary'].items():
         pct = not key.startswith('auroc')

@@ -61,19 +61,17 @@ def run_teach_protocol(bank_file: BankFile, class_names: list[str], labels: np.n
                        draws: int = 5, seed: int = 0, policy: RefitPolicy | None = None,
                        fit_threshold: float | None = None,
                        progress: Callable[[str], None] | None = None,
-                       volumes: np.ndarray | None = None,
-                       volume_threshold: float | None = None) -> dict[str, Any]:
+                       structural: np.ndarray | None = None) -> dict[str, Any]:
     """The protocol of the module docstring.
 
     labels: (M,) data set class ids into class_names; features: (M, D) raw encoder output;
     sizes: (M, SIZE_DIM) metric log sizes, or None (no units: size skipped); fit_threshold:
     the default rule's fit threshold (None: no fit rule; the reject rates then use only
-    the bank's own unknown rule, off); volumes: (M,) the clouds' volumetric shares
-    (core/surface.py) and volume_threshold the node's volume rule (None: no such rule), also
-    counted in the reject rates.
+    the bank's own unknown rule, off); structural: (M,) bool, the clouds the node's volume
+    and scene rules call unknown (core/surface.py `structure_unknown`; None: no such rules),
+    also counted in the reject rates.
     """
-    vol = np.zeros(len(labels), bool) if volumes is None or volume_threshold is None \
-        else np.asarray(volumes) > volume_threshold
+    ruled = np.zeros(len(labels), bool) if structural is None else np.asarray(structural, bool)
     labels = np.asarray(labels, dtype=np.int64)
     n_cls = len(class_names)
     counts = np.bincount(labels, minlength=n_cls)
@@ -94,7 +92,7 @@ def run_teach_protocol(bank_file: BankFile, class_names: list[str], labels: np.n
         for c in order:
             if c == held and n_cls > 1:
                 open_row = _open_set(bf, class_names, labels, features, sizes, query, held,
-                                     fit_threshold, vol)
+                                     fit_threshold, ruled)
             idx = support[labels[support] == c]
             bf = add_examples(bf, features[idx], class_names[c], source='point_gn fewshot',
                               policy=policy, sizes=None if sizes is None else sizes[idx]).file
@@ -107,8 +105,8 @@ def run_teach_protocol(bank_file: BankFile, class_names: list[str], labels: np.n
         true = labels[query]
         row = {'draw': draw, 'accuracy': mean_class_accuracy(top1, true),
                'built_share': float((top1 < 0).mean()),
-               'rejected': float(((res.labels < 0) | vol[query]).mean()),
-               'volume_rejected': float(vol[query].mean()),
+               'rejected': float(((res.labels < 0) | ruled[query]).mean()),
+               'structure_rejected': float(ruled[query].mean()),
                'nearest_mean': mean_class_accuracy(nearest_mean(
                    features[support].numpy(), labels[support], features[query].numpy(),
                    n_cls), true)}
@@ -130,7 +128,7 @@ def run_teach_protocol(bank_file: BankFile, class_names: list[str], labels: np.n
 
 def _open_set(bf: BankFile, class_names: list[str], labels: np.ndarray, features: torch.Tensor,
               sizes: np.ndarray | None, query: np.ndarray, held: int,
-              fit_threshold: float | None, vol: np.ndarray) -> dict[str, Any]:
+              fit_threshold: float | None, ruled: np.ndarray) -> dict[str, Any]:
     """The bank without class `held`: its scans (all of them) against the others' queries."""
     unseen = np.flatnonzero(labels == held)
     known = query[labels[query] != held]
@@ -144,7 +142,7 @@ def _open_set(bf: BankFile, class_names: list[str], labels: np.ndarray, features
         out['auroc_fit'] = auroc(-res.fit[is_unseen], -res.fit[~is_unseen])
     if res.size_misfit is not None:
         out['auroc_size'] = auroc(res.size_misfit[is_unseen], res.size_misfit[~is_unseen])
-    rejected = (res.labels < 0) | vol[rows]
+    rejected = (res.labels < 0) | ruled[rows]
     out['unseen_rejected'] = float(rejected[is_unseen].mean())
     out['taught_rejected'] = float(rejected[~is_unseen].mean())
     return out

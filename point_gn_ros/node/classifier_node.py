@@ -63,7 +63,8 @@ from point_gn_ros.node.outputs import Outputs, vision_msgs_available
 from point_gn_ros.node.parameter_mixin import ParameterMixin
 from point_gn_ros.node.parent_death import exit_with_parent
 from point_gn_ros.node.params import (PARAMETERS, NodeConfigError, Settings,
-                                      resolve_unknown_threshold, settings_from_values)
+                                      resolve_unknown_threshold, rule_thresholds,
+                                      settings_from_values)
 from point_gn_ros.node.pipeline import Answer, Pipeline
 from point_gn_ros.node.rate_limited_log import RateLimitedLogger
 from point_gn_ros.node.stats import NodeStats
@@ -338,14 +339,11 @@ class ClassifierNode(ParameterMixin, DiagnosticsMixin, LifecycleNode):
         # The fast encoder runs its own worker pool (default: every CPU): bounded by its own
         # parameter, apart from torch's (the classifier), which wants fewer.
         encoder = make_encoder(bank.config, s.device, threads=s.encoder_threads)
-        from point_gn_ros.bank.taught import fit_rule
-        from point_gn_ros.core.surface import volume_rule
         try:
             return Recognizer(bank, s.device, s.resample, s.top_k,
                               s.unknown_threshold or None, encoder=encoder, search=s.search,
                               object_test=s.object_test, metric_size=s.metric_size,
-                              fit_threshold=fit_rule(s.fit_threshold),
-                              volume_threshold=volume_rule(s.volume_threshold))
+                              **rule_thresholds(s))
         except ValueError as exc:       # e.g. unknown_threshold < 0 without a calibration
             raise NodeConfigError(str(exc)) from None
 

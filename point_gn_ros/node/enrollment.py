@@ -69,6 +69,7 @@ from point_gn_ros.errors import DecodeError, PointGNError
 from point_gn_ros.node.enroll_detections import StampPairing, crop_box
 from point_gn_ros.node.enroll_engine import EnrollEngine
 from point_gn_ros.node.frames import to_z_up
+from point_gn_ros.node.params import rule_thresholds
 
 try:
     from vision_msgs.msg import Detection3DArray
@@ -345,15 +346,12 @@ class Enrollment(ManagedEntity):
         previous: the recognizer of the version before (an enrollment): its search index is
         extended rather than rebuilt where that is exact (bank/index.py).
         """
-        from point_gn_ros.bank.taught import fit_rule
-        from point_gn_ros.core.surface import volume_rule
         from point_gn_ros.recognizer import Recognizer
         s, enc = self.node.settings, self.node.recognizer.encoder
         return Recognizer(bank, s.device, s.resample, s.top_k, s.unknown_threshold or None,
                           encoder=enc, search=s.search, previous=previous,
                           object_test=s.object_test, metric_size=s.metric_size,
-                          fit_threshold=fit_rule(s.fit_threshold),
-                          volume_threshold=volume_rule(s.volume_threshold))
+                          **rule_thresholds(s))
 
     # ------------------------------------------------------------------ worker hooks
 

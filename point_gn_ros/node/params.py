@@ -13,6 +13,9 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
 from point_gn_ros.bank.classifier import unknown_rules
+from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD, fit_rule
+from point_gn_ros.core.surface import (DEFAULT_SCENE_THRESHOLD, DEFAULT_VOLUME_THRESHOLD,
+                                       scene_rule, volume_rule)
 from point_gn_ros.errors import PointGNError
 from point_gn_ros.node.frames import UP_AXES
 
@@ -91,8 +94,9 @@ class Settings:
     search: str = 'auto'
     object_test: bool = True
     metric_size: bool = True
-    fit_threshold: float = 0.0
-    volume_threshold: float = 0.8
+    fit_threshold: float = DEFAULT_FIT_THRESHOLD
+    volume_threshold: float = DEFAULT_VOLUME_THRESHOLD
+    scene_threshold: float = DEFAULT_SCENE_THRESHOLD
     allow_parameter_changes: bool = False
     no_segment_ids: tuple[str, ...] = ('negative', 'max')
     # One per input topic (same order): its own segment field, up axis and QoS.
@@ -202,18 +206,28 @@ PARAMETERS: dict[str, tuple[Any, str, dict[str, Any]]] = {
                           'is evidence against classes of implausible size, and taught classes '
                           'keep the sizes of their examples (bank/taught.py, docs/SIZE.md); '
                           'false for inputs without metric meaning (unit-sphere data).', {}),
-    'fit_threshold': (0.0, 'Unknown (class_id -1) when the shape-and-size fit to the nearest '
-                           'class (with metric_size and taught classes with sizes: the nearest '
-                           'taught class) is below it, or (with metric_size) the size lies '
-                           "outside the answer's size region (bank/taught.py): garbage decodes, "
-                           'clouds of a size no class has, objects unlike every taught one; '
-                           '-10 = off (docs/SIZE.md for the trade-off).',
-                      {'floating_point_range': _float_range(-10.0, 1.0)}),
-    'volume_threshold': (0.8, "Unknown (class_id -1) when more than this share of the cloud's "
-                              'local neighbourhoods is volumetric (core/surface.py): a volume of '
-                              'random points, not a view of surfaces; 1.0 = off '
-                              '(docs/SIZE.md for the trade-off).',
-                         {'floating_point_range': _float_range(0.0, 1.0)}),
+    'fit_threshold': (
+        DEFAULT_FIT_THRESHOLD,
+        'Unknown (class_id -1) when the shape-and-size fit to the nearest class (with '
+        'metric_size and taught classes with sizes: the nearest taught class) is below it, or '
+        "(with metric_size) the size lies outside the answer's size region (bank/taught.py): "
+        'garbage decodes, clouds of a size no class has, objects unlike every taught one; '
+        '-10 = off (docs/SIZE.md for the trade-off).',
+        {'floating_point_range': _float_range(-10.0, 1.0)}),
+    'volume_threshold': (
+        DEFAULT_VOLUME_THRESHOLD,
+        "Unknown (class_id -1) when more than this share of the cloud's local neighbourhoods "
+        'is volumetric (core/surface.py): a volume of random points, not a view of surfaces; '
+        '1.0 = off (docs/SIZE.md for the trade-off).',
+        {'floating_point_range': _float_range(0.0, 1.0)}),
+    'scene_threshold': (
+        DEFAULT_SCENE_THRESHOLD,
+        'Unknown (class_id -1) when more than this share of the area the cloud covers seen '
+        'from above lies apart from its largest part, a floor or table top under it left out, '
+        'or when that support holds most points and is far wider than what stands on it '
+        '(core/surface.py): several objects or a whole scene, not one segmented object; '
+        '1.0 = off (docs/SIZE.md for the trade-off).',
+        {'floating_point_range': _float_range(0.0, 1.0)}),
     'autostart': (True, 'Walk the lifecycle to active at start (configure + activate), as a '
                         'plain node; false = wait for a lifecycle manager.', {}),
     'allow_parameter_changes': (False, 'Let `ros2 param set` (any peer on the ROS domain: '
@@ -306,6 +320,13 @@ def settings_from_values(values: dict[str, Any],
         if not torch.cuda.is_available():
             raise NodeConfigError("parameter device='cuda' but CUDA is not available")
     return Settings(**values)
+
+
+def rule_thresholds(s: Settings) -> dict[str, float | None]:
+    """The Recognizer's fit, volume and scene rules (None: off) from the node's settings."""
+    return {'fit_threshold': fit_rule(s.fit_threshold),
+            'volume_threshold': volume_rule(s.volume_threshold),
+            'scene_threshold': scene_rule(s.scene_threshold)}
 
 
 def resolve_unknown_threshold(bank: Any, value: float) -> float | None:

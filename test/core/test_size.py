@@ -191,9 +191,11 @@ def test_fewshot_bank_runs_the_teach_and_query_protocol(tmp_path: Path, capsys) 
     assert rep['metric_size'] and rep['shots'] == 3 and len(rep['per_draw']) == 2
     for key in ('accuracy', 'built_share', 'nearest_mean', 'geometry', 'auroc_fit', 'auroc_size',
                 'auroc_top_probability', 'unseen_rejected', 'taught_rejected',
-                'volume_rejected'):
+                'structure_rejected'):
         assert 0.0 <= summ[key]['mean'] <= 1.0, key
-    assert summ['volume_rejected']['mean'] == 0.0        # real views are surfaces
+    # views are surfaces of one object: only fork_13, its handle and tines raised apart above
+    # its low middle, is measured as parts (3 of the 1,200 tabletop views; docs/SIZE.md)
+    assert summ['structure_rejected']['mean'] <= 1 / 15
     # three distinct objects, sizes in metres: taught they are told apart
     assert summ['accuracy']['mean'] >= 0.8
 

@@ -1,8 +1,9 @@
 """The node's default unknown rules over real DDS: what is no object comes out unknown.
 
-Random Gaussian blobs (the volume rule, core/surface.py) and a garbage decode (byte-swapped
-floats: sizes no class has, bank/taught.py's fit rule) get class_id -1 at the node's default
-parameters; a real object's single-view scan at a plausible size keeps its class.
+Random Gaussian blobs (the volume rule, core/surface.py), a whole scene (two chairs on a
+floor: the scene rule, core/surface.py) and a garbage decode (byte-swapped floats: sizes no
+class has, bank/taught.py's fit rule) get class_id -1 at the node's default parameters; a real
+object's single-view scan at a plausible size keeps its class.
 """
 
 from __future__ import annotations
@@ -42,15 +43,21 @@ def _clouds() -> tuple[list[np.ndarray], list[str]]:
              for sd in (0.05, 0.2, 1.0)]
     garbage = rng.normal(size=(600, 3)).astype('>f4').view('<f4').astype(np.float32)
     garbage = garbage[np.isfinite(garbage).all(1)]
-    real = []
-    for name in ('bottle', 'chair'):
-        obj = pick('test', (name,), 1)[0][0]
-        view = simulate_view(obj, 3).points
-        real.append((view * plausible_scale(obj, name) + [3.0, 1.0, 0.0]).astype(np.float32))
-    return [*blobs, garbage, *real], ['blob'] * 3 + ['garbage', 'bottle', 'chair']
+    views = []
+    for name, obj in zip(('bottle', 'chair', 'chair'), [*pick('test', ('bottle',), 1)[0],
+                                                         *pick('test', ('chair',), 2)[0]],
+                         strict=True):
+        view = simulate_view(obj, 3).points * plausible_scale(obj, name)
+        views.append((view - [*view[:, :2].mean(0), view[:, 2].min()]).astype(np.float32))
+    # two chairs 1.5 m apart on a 4 x 3 m floor
+    floor = np.c_[(rng.random((3000, 2)) - 0.5) * [4.0, 3.0], rng.normal(0, 0.005, 3000)]
+    scene = np.concatenate([floor, views[1] + [-1.0, 0.0, 0.0], views[2] + [1.0, 0.0, 0.0]])
+    real = [v + [3.0, 1.0, 0.0] for v in views[:2]]
+    return [*blobs, garbage, scene.astype(np.float32), *real], \
+        ['blob'] * 3 + ['garbage', 'scene', 'bottle', 'chair']
 
 
-def test_blobs_and_garbage_are_unknown_and_real_objects_are_not(
+def test_blobs_scenes_and_garbage_are_unknown_and_real_objects_are_not(
         harness: Harness, node: NodeProcess, tiny_bank: Path) -> None:
     from sensor_msgs.msg import PointCloud2
 
@@ -70,7 +77,7 @@ def test_blobs_and_garbage_are_unknown_and_real_objects_are_not(
     assert harness.spin_until(lambda: all(got(k) for k in keys), ANSWER_TIMEOUT_S), node.log()
     ids = [int(decode_classifications(got(k)[0])['class_id'][0]) for k in keys]
     for kind, cid in zip(kinds, ids, strict=True):
-        if kind in ('blob', 'garbage'):
+        if kind in ('blob', 'garbage', 'scene'):
             assert cid == -1, f'{kind}: class {cid}, expected unknown'
         else:
             assert cid >= 0 and BANK_CLASSES[cid] == kind, f'{kind} answered {cid}'
