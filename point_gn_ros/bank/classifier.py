@@ -88,6 +88,9 @@ class Classification:
     separated: np.ndarray | None = None   # (B,) share of area apart from the cloud's
                                           # largest part (core/surface.py); None without the
                                           # scene rule
+    rejected_by: np.ndarray | None = None  # (B,) object: the unknown rules that made each
+                                           # row unknown, '+'-joined ('scene', 'fit+size');
+                                           # '' where none did
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -400,21 +403,24 @@ class Classifier:
             prob, fit, misfit = self.taught.apply(prob, z, sizes)
         k = max(1, min(top_k, prob.shape[1]))
         top_s, top_i = prob.topk(k, dim=1)
-        labels = top_i[:, 0].clone()
+        labels = top_i[:, 0].numpy().astype(np.int64)
         rules = self.rules
-        if rules.probability is not None:
-            labels[top_s[:, 0] < rules.probability] = UNKNOWN
-        if rules.novelty is not None:
-            labels[novelty > rules.novelty] = UNKNOWN
-        if rules.fit is not None and fit is not None:
-            labels[torch.from_numpy(fit < rules.fit)] = UNKNOWN
-            if misfit is not None:
-                labels[torch.from_numpy(misfit > 1.0)] = UNKNOWN
-        if rules.volume is not None and volumes is not None:
-            labels[torch.from_numpy(np.asarray(volumes) > rules.volume)] = UNKNOWN
-        if rules.scene is not None and separated is not None:
-            labels[torch.from_numpy(np.asarray(separated) > rules.scene)] = UNKNOWN
-        return Classification(labels=labels.numpy().astype(np.int64),
+        # each rule that is on and measured: (B,) bool, the rows it makes unknown
+        by = {'probability': None if rules.probability is None
+              else (top_s[:, 0] < rules.probability).numpy(),
+              'novelty': None if rules.novelty is None
+              else (novelty > rules.novelty).numpy(),
+              'fit': None if rules.fit is None or fit is None else fit < rules.fit,
+              'size': None if rules.fit is None or misfit is None else misfit > 1.0,
+              'volume': None if rules.volume is None or volumes is None
+              else np.asarray(volumes) > rules.volume,
+              'scene': None if rules.scene is None or separated is None
+              else np.asarray(separated) > rules.scene}
+        by = {name: mask for name, mask in by.items() if mask is not None}
+        rejected_by = np.array(['+'.join(n for n, m in by.items() if m[i])
+                                for i in range(len(labels))], dtype=object)
+        labels[rejected_by != ''] = UNKNOWN
+        return Classification(labels=labels,
                               scores=top_s[:, 0].numpy().astype(np.float32),
                               topk_ids=top_i.numpy().astype(np.int64),
                               topk_scores=top_s.numpy().astype(np.float32),
@@ -428,7 +434,8 @@ class Classifier:
                               volumetric=None if volumes is None
                               else np.asarray(volumes, dtype=np.float32),
                               separated=None if separated is None
-                              else np.asarray(separated, dtype=np.float32))
+                              else np.asarray(separated, dtype=np.float32),
+                              rejected_by=rejected_by)
 
 
 def _object_shift(bank: FeatureBank) -> ObjectShift | None:

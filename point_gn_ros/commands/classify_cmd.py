@@ -1,7 +1,9 @@
 """`point_gn classify FILE...`: what the node would answer for point files (PCD, PLY, npy, txt).
 
 Each file is one segmented object (the node's input after segmentation): NaN points are
-dropped by the reader, then the cloud goes through the same Recognizer as the node.
+dropped by the reader, then the cloud goes through the same Recognizer as the node. An
+unknown answer names the rules that made it so (`Classification.rejected_by`: volume, scene,
+fit, size, probability, novelty; docs/SIZE.md).
 """
 
 from __future__ import annotations
@@ -38,10 +40,12 @@ def _classify(args: argparse.Namespace) -> int:
         extent = (xyz.max(axis=0) - xyz.min(axis=0)).tolist() if len(xyz) else [0.0] * 3
         # Two-section banks: how likely the gate thinks this is a single-view scan.
         partial = None if res.partial is None else float(res.partial[0])
-        label = names[int(res.labels[0])] if res.labels[0] >= 0 else 'unknown'
+        label = names[int(res.labels[0])] if res.labels[0] >= 0 \
+            else f'unknown [{res.rejected_by[0]}]'
         if args.json:
             print(json.dumps({'file': path, 'points': len(xyz), 'extent': extent,
-                              'label': label,
+                              'label': label.split(' ')[0],
+                              'rejected_by': res.rejected_by[0],
                               'top': [{'class': n, 'score': s} for n, s in top],
                               'partial': partial}))
         else:

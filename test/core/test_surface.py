@@ -84,6 +84,7 @@ def test_recognizer_volume_rule_rejects_blobs_only() -> None:
     clouds = [*_blobs(rng, 4), _read('milk_color')]
     res = rule.classify_clouds(clouds)
     assert (res.labels[:4] == -1).all() and res.labels[4] >= 0
+    assert list(res.rejected_by) == ['volume'] * 4 + ['']
     assert res.volumetric is not None and res.volumetric.shape == (5,)
     later = rule.classify_later(clouds)()
     np.testing.assert_array_equal(later.labels, res.labels)
@@ -164,6 +165,7 @@ def test_recognizer_scene_rule_rejects_scenes_only() -> None:
     res = rec.classify_clouds(clouds)
     assert res.separated is not None and res.separated.shape == (3,)
     assert res.labels[0] == -1 and res.labels[2] == -1
+    assert 'scene' in res.rejected_by[0].split('+') and 'scene' not in res.rejected_by[1]
     assert res.separated[1] <= DEFAULT_SCENE_THRESHOLD
     later = rec.classify_later(clouds)()
     np.testing.assert_array_equal(later.labels, res.labels)
