@@ -15,11 +15,14 @@ import torch
 
 from point_gn_ros.bank.store import FeatureBank
 from point_gn_ros.bank.classifier import Classification, Classifier
+from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD, fit_rule
 from point_gn_ros.core.augment import Augment, yaw_variants
 from point_gn_ros.core.config import EncoderConfig
 from point_gn_ros.core.sampling import ResampleMethod, prepare
 from point_gn_ros.core.size import size_descriptors
-from point_gn_ros.core.surface import separated_shares, volumetric_shares
+from point_gn_ros.core.surface import (DEFAULT_SCENE_THRESHOLD, DEFAULT_VOLUME_THRESHOLD,
+                                       scene_rule, separated_shares, volume_rule,
+                                       volumetric_shares)
 
 
 class Encoder(Protocol):
@@ -98,6 +101,17 @@ def encode_clouds(clouds: Iterable[np.ndarray] | np.ndarray, encoder: Encoder,
     return torch.cat(out) if out else torch.zeros(0, encoder.cfg.feature_dim)
 
 
+def rule_thresholds(fit: float = DEFAULT_FIT_THRESHOLD, volume: float = DEFAULT_VOLUME_THRESHOLD,
+                    scene: float = DEFAULT_SCENE_THRESHOLD) -> dict[str, float | None]:
+    """The node's fit, volume and scene thresholds -> the Recognizer's keyword arguments.
+
+    -10 (fit) and 1.0 (volume, scene) are off (None: no such rule); the defaults are the
+    node's.
+    """
+    return {'fit_threshold': fit_rule(fit), 'volume_threshold': volume_rule(volume),
+            'scene_threshold': scene_rule(scene)}
+
+
 class Recognizer:
     """Classify segmented object clouds against a feature bank."""
 
@@ -166,14 +180,7 @@ class Recognizer:
         What the offline tools use, so that they answer as a node at its defaults does.
         metric_size: False for clouds without metric meaning (unit-sphere data).
         """
-        from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD, fit_rule
-        from point_gn_ros.core.surface import (DEFAULT_SCENE_THRESHOLD,
-                                               DEFAULT_VOLUME_THRESHOLD, scene_rule,
-                                               volume_rule)
-        return cls.from_bank(path, fit_threshold=fit_rule(DEFAULT_FIT_THRESHOLD),
-                             volume_threshold=volume_rule(DEFAULT_VOLUME_THRESHOLD),
-                             scene_threshold=scene_rule(DEFAULT_SCENE_THRESHOLD),
-                             metric_size=metric_size, **kwargs)
+        return cls.from_bank(path, metric_size=metric_size, **rule_thresholds(), **kwargs)
 
     @property
     def class_names(self) -> list[str]:

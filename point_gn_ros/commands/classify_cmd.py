@@ -40,11 +40,10 @@ def _classify(args: argparse.Namespace) -> int:
         extent = (xyz.max(axis=0) - xyz.min(axis=0)).tolist() if len(xyz) else [0.0] * 3
         # Two-section banks: how likely the gate thinks this is a single-view scan.
         partial = None if res.partial is None else float(res.partial[0])
-        label = names[int(res.labels[0])] if res.labels[0] >= 0 \
-            else f'unknown [{res.rejected_by[0]}]'
+        label = names[int(res.labels[0])] if res.labels[0] >= 0 else 'unknown'
         if args.json:
             print(json.dumps({'file': path, 'points': len(xyz), 'extent': extent,
-                              'label': label.split(' ')[0],
+                              'label': label,
                               'rejected_by': res.rejected_by[0],
                               'top': [{'class': n, 'score': s} for n, s in top],
                               'partial': partial}))
@@ -52,5 +51,6 @@ def _classify(args: argparse.Namespace) -> int:
             guesses = ', '.join(f'{n} {s:.2f}' for n, s in top)
             size = ' x '.join(f'{e:.2f}' for e in extent)
             seen = '' if partial is None else f' (single-view scan: {partial:.2f})'
-            print(f'{path}: {len(xyz)} points, extent {size}{seen}: {label} ({guesses})')
+            why = f' [{res.rejected_by[0]}]' if res.labels[0] < 0 else ''
+            print(f'{path}: {len(xyz)} points, extent {size}{seen}: {label}{why} ({guesses})')
     return 0

@@ -120,16 +120,16 @@ def _separated_share(cloud: np.ndarray) -> float:
     z_lo, z_hi = _percentiles(np.sort(p[:, 2]), (2.0, 98.0))
     height = z_hi - z_lo
     plane, sd = _support_plane(p[p[:, 2] <= z_lo + SUPPORT_BAND * height])
-    above = _height_over(p, plane)
+    over = _height_over(p, plane)
     # the band again, measured from that plane (a tilted ground reaches past the first band);
     # the support is whichever plane more points lie on
-    a_lo, a_hi = _percentiles(np.sort(above), (2.0, 98.0))
-    again, sd_again = _support_plane(p[above <= a_lo + SUPPORT_BAND * (a_hi - a_lo)])
+    a_lo, a_hi = _percentiles(np.sort(over), (2.0, 98.0))
+    again, sd_again = _support_plane(p[over <= a_lo + SUPPORT_BAND * (a_hi - a_lo)])
+    over_again = _height_over(p, again)
     on = SCENE_SLAB * height
-    if (np.abs(_height_over(p, again)) <= on).sum() > (np.abs(above) <= on).sum():
-        plane, sd = again, sd_again
+    if (np.abs(over_again) <= on).sum() > (np.abs(over) <= on).sum():
+        plane, sd, over = again, sd_again, over_again
     clear = max(on, 3.0 * sd)
-    over = _height_over(p, plane)
     top = p[over > clear, :2]
     if len(top) <= SURFACE_K:
         return 0.0

@@ -13,11 +13,11 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
 from point_gn_ros.bank.classifier import unknown_rules
-from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD, fit_rule
-from point_gn_ros.core.surface import (DEFAULT_SCENE_THRESHOLD, DEFAULT_VOLUME_THRESHOLD,
-                                       scene_rule, volume_rule)
+from point_gn_ros.bank.taught import DEFAULT_FIT_THRESHOLD
+from point_gn_ros.core.surface import DEFAULT_SCENE_THRESHOLD, DEFAULT_VOLUME_THRESHOLD
 from point_gn_ros.errors import PointGNError
 from point_gn_ros.node.frames import UP_AXES
+from point_gn_ros.recognizer import rule_thresholds as recognizer_rules
 
 
 class NodeConfigError(PointGNError):
@@ -324,9 +324,7 @@ def settings_from_values(values: dict[str, Any],
 
 def rule_thresholds(s: Settings) -> dict[str, float | None]:
     """The Recognizer's fit, volume and scene rules (None: off) from the node's settings."""
-    return {'fit_threshold': fit_rule(s.fit_threshold),
-            'volume_threshold': volume_rule(s.volume_threshold),
-            'scene_threshold': scene_rule(s.scene_threshold)}
+    return recognizer_rules(s.fit_threshold, s.volume_threshold, s.scene_threshold)
 
 
 def resolve_unknown_threshold(bank: Any, value: float) -> float | None:
