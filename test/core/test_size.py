@@ -149,6 +149,17 @@ def test_a_metric_query_like_a_taught_class_takes_it_from_the_built_one_the_head
     every = layer.fit(odd.double().numpy(), layer.plausibility(lamp))
     assert fit_odd[0] < DEFAULT_FIT_THRESHOLD < every[0]
     assert fit[0] > DEFAULT_FIT_THRESHOLD
+    # judged against taught classes, the whole size distance counts: of two scans of the
+    # same shape, both inside the pedestrian's size region, the one of its typical size fits
+    # better (the region-clipped fit, which the lead uses, ties them)
+    sd = np.sqrt(layer.size_var[2])
+    near, off = walker.mean(0), walker.mean(0) + sd
+    assert (-2 * layer.plausibility(off[None])[0, 2]) < layer.region[2]
+    _, fits, _ = layer.apply(head.repeat(2, 1), z.repeat(2, 1), np.stack([near, off]))
+    assert fits[0] > fits[1] + 0.05
+    clipped = layer.fits(z.repeat(2, 1).double().numpy(),
+                         layer.plausibility(np.stack([near, off])))[:, 2]
+    assert clipped[0] == clipped[1]
 
 
 @pytest.fixture(scope='module')
