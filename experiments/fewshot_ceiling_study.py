@@ -37,7 +37,7 @@ from point_gn_ros.bank.enroll import BankFile
 from point_gn_ros.bank.taught import KAPPA, PRIOR_COUNT, PRIOR_VAR
 from point_gn_ros.core.size import size_descriptors
 from point_gn_ros.datasets import open_dataset
-from point_gn_ros.evaluation.teach import mean_class_accuracy
+from point_gn_ros.evaluation.teach import mean_class_accuracy, nearest_mean
 from point_gn_ros.recognizer import make_encoder
 
 SHARED = Path(__file__).resolve().parents[2] / 'shared' / 'datasets'
@@ -115,10 +115,7 @@ def main() -> None:
         for shots in (5, 30):
             accs = []
             for draw in range(args.draws):
-                r = np.random.default_rng(draw)
-                s = np.concatenate([r.permutation(np.flatnonzero(y == k))[:shots]
-                                    for k in range(c)])
-                q = np.setdiff1d(np.arange(len(y)), s)
+                s, q = split(y, c, shots, draw)
                 accs.append(mean_class_accuracy(rule(s, q, y[s]).argmax(1), y[q]))
             cells.append(f'{100 * np.mean(accs):.1f} ± {100 * np.std(accs):.1f} %')
         print(f'| {name} | ' + ' | '.join(cells) + ' |', flush=True)
@@ -133,10 +130,7 @@ def main() -> None:
     for shots in (5, 10, 20, 30):
         per_class = np.zeros(c)
         for draw in range(args.draws):
-            r = np.random.default_rng(draw)
-            s = np.concatenate([r.permutation(np.flatnonzero(y == k))[:shots]
-                                for k in range(c)])
-            q = np.setdiff1d(np.arange(len(y)), s)
+            s, q = split(y, c, shots, draw)
             p = division(s, q, y[s]).argmax(1)
             per_class += np.array([np.mean(p[y[q] == k] == k) for k in range(c)]) / args.draws
         cells = (per_class.mean(), per_class[twins].mean(), per_class[rest].mean())
@@ -166,23 +160,26 @@ PAIRS = (('cocacola', 'sprite'), ('cocacola', 'fanta'), ('fanta', 'sprite'), ('c
          ('highmug', 'mixmug'), ('milk', 'yogurt'), ('bowl', 'classicBowl'))
 
 
+def split(y: np.ndarray, classes: int, shots: int, draw: int) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) class ids -> support (`shots` of each class, seeded by `draw`), query (the rest)."""
+    r = np.random.default_rng(draw)
+    s = np.concatenate([r.permutation(np.flatnonzero(y == k))[:shots] for k in range(classes)])
+    return s, np.setdiff1d(np.arange(len(y)), s)
+
+
 def pair_accuracy(x: np.ndarray, y: np.ndarray, a: int, b: int, shots: int, draws: int) -> float:
     """(M, D) features -> 2-way nearest-mean accuracy between classes a and b.
 
-    Each dim scaled by the support's pooled within-class sd; the mean of the two classes'
-    accuracies over `draws` seeded draws of `shots` support views a class.
+    `nearest_mean` by standardised distance (each dim over the support's pooled within-class
+    sd); mean class accuracy over `draws` seeded draws of `shots` support views a class.
     """
+    rows = np.flatnonzero((y == a) | (y == b))
+    x2, y2 = x[rows], (y[rows] == b).astype(np.int64)
     accs = []
     for draw in range(draws):
-        r = np.random.default_rng(draw)
-        ia, ib = r.permutation(np.flatnonzero(y == a)), r.permutation(np.flatnonzero(y == b))
-        sa, sb = x[ia[:shots]], x[ib[:shots]]
-        sd = np.r_[sa - sa.mean(0), sb - sb.mean(0)].std(0) + 1e-9
-        ma, mb = sa.mean(0) / sd, sb.mean(0) / sd
-        qa, qb = x[ia[shots:]] / sd, x[ib[shots:]] / sd
-        hit_a = ((qa - ma) ** 2).sum(1) < ((qa - mb) ** 2).sum(1)
-        hit_b = ((qb - mb) ** 2).sum(1) < ((qb - ma) ** 2).sum(1)
-        accs.append((hit_a.mean() + hit_b.mean()) / 2)
+        s, q = split(y2, 2, shots, draw)
+        accs.append(mean_class_accuracy(nearest_mean(x2[s], y2[s], x2[q], 2, cosine=False),
+                                        y2[q]))
     return float(np.mean(accs))
 
 
